@@ -1,0 +1,117 @@
+// The Cayley step of Zhang, Jacobson & Alexa, "Fast Updates for Least-Squares
+// Rotational Alignment" (Algorithm 2), and the Cayley map back to a rotation
+// (Eq. 10), written once for any lane type `V` (see mat3.h).
+//
+// Convention. torchrot maximises tr(R^T M). Writing R = R0 Q, the objective is
+// tr(Q^T S) with S = R0^T M, which is the paper's tr(M_p Q) for M_p = S^T. All
+// formulas below are the paper's, rewritten for S:
+//   m = vee(S - S^T) = (S21 - S12, S02 - S20, S10 - S01)        (Eq. 12)
+//   t = tr S,   T = S + S^T - t I                               (Eq. 36)
+//   (S + S^T - (t + c) I) z = -m                                (Eq. 24 / 29)
+// and Q = ((1 - z.z) I + 2 z z^T + 2 [z]x) / (1 + z.z)          (Eq. 10).
+// The step is also the lower block of Horn's eigenproblem K (1, z) = c (1, z)
+// with K = [[t, m^T], [m, T]], so c estimates K's largest eigenvalue, i.e. the
+// maximal objective.
+#pragma once
+
+#include "../fit_rotation.h"
+#include "mat3.h"
+
+namespace torchrot {
+namespace kernel {
+inline namespace CPU_CAPABILITY {
+
+// Lane-type helpers; overloads for Vectorized<T> live beside the SIMD kernels.
+inline float lane_sqrt(float x) { return __builtin_sqrtf(x); }
+inline double lane_sqrt(double x) { return __builtin_sqrt(x); }
+inline float lane_abs(float x) { return __builtin_fabsf(x); }
+inline double lane_abs(double x) { return __builtin_fabs(x); }
+inline float lane_max(float a, float b) { return a > b ? a : b; }
+inline double lane_max(double a, double b) { return a > b ? a : b; }
+
+template <typename V>
+struct CayleyStep {
+  V z[3];   // the Cayley parameters of the update Q
+  V zz;     // z.z, the paper's s = tan^2(theta / 2)
+};
+
+// Estimate of the maximal objective for `variant` (Eqs. 26-28).
+template <typename V>
+inline V objective_estimate(const Mat3<V>& S, V t, V mm, Variant variant) {
+  switch (variant) {
+    case Variant::kNewton:
+      return t;
+    case Variant::kConservative:
+      return lane_sqrt(t * t + mm);
+    case Variant::kGershgorin: {
+      // 2 lambda_2 <= max_i (2 S_ii + sum_{j != i} |S_ij + S_ji|)  (Eq. 28)
+      V s01 = lane_abs(S(0, 1) + S(1, 0));
+      V s02 = lane_abs(S(0, 2) + S(2, 0));
+      V s12 = lane_abs(S(1, 2) + S(2, 1));
+      V two_lambda2 = lane_max(V(2) * S(0, 0) + s01 + s02,
+                               lane_max(V(2) * S(1, 1) + s01 + s12,
+                                        V(2) * S(2, 2) + s02 + s12));
+      V g_sym = lane_max(t, two_lambda2 - t);
+      return lane_sqrt(g_sym * g_sym + mm);  // Eq. 27
+    }
+  }
+  return t;
+}
+
+// Algorithm 2: solve (S + S^T - (t + c) I) z = -m by Cramer's rule
+// (Eqs. 30-33), using the symmetric adjugate of H.
+template <typename V>
+inline CayleyStep<V> cayley_step(const Mat3<V>& S, Variant variant) {
+  const V m0 = S(2, 1) - S(1, 2);
+  const V m1 = S(0, 2) - S(2, 0);
+  const V m2 = S(1, 0) - S(0, 1);
+  const V t = S(0, 0) + S(1, 1) + S(2, 2);
+  const V mm = m0 * m0 + m1 * m1 + m2 * m2;
+  const V shift = t + objective_estimate(S, t, mm, variant);
+
+  const V h00 = V(2) * S(0, 0) - shift;
+  const V h11 = V(2) * S(1, 1) - shift;
+  const V h22 = V(2) * S(2, 2) - shift;
+  const V h01 = S(0, 1) + S(1, 0);
+  const V h02 = S(0, 2) + S(2, 0);
+  const V h12 = S(1, 2) + S(2, 1);
+
+  const V c00 = h11 * h22 - h12 * h12;
+  const V c01 = h02 * h12 - h01 * h22;
+  const V c02 = h01 * h12 - h02 * h11;
+  const V c11 = h00 * h22 - h02 * h02;
+  const V c12 = h01 * h02 - h00 * h12;
+  const V c22 = h00 * h11 - h01 * h01;
+  const V neg_inv_det = V(-1) / (h00 * c00 + h01 * c01 + h02 * c02);
+
+  CayleyStep<V> step;
+  step.z[0] = (c00 * m0 + c01 * m1 + c02 * m2) * neg_inv_det;
+  step.z[1] = (c01 * m0 + c11 * m1 + c12 * m2) * neg_inv_det;
+  step.z[2] = (c02 * m0 + c12 * m1 + c22 * m2) * neg_inv_det;
+  step.zz = step.z[0] * step.z[0] + step.z[1] * step.z[1] + step.z[2] * step.z[2];
+  return step;
+}
+
+// The rotation with Cayley parameters z (Eq. 10).
+template <typename V>
+inline Mat3<V> cayley_rotation(const CayleyStep<V>& step) {
+  const V x = step.z[0], y = step.z[1], w = step.z[2];
+  const V inv = V(1) / (V(1) + step.zz);
+  const V diag = V(1) - step.zz;
+  const V two_inv = V(2) * inv;
+  Mat3<V> Q;
+  Q(0, 0) = (diag + V(2) * x * x) * inv;
+  Q(1, 1) = (diag + V(2) * y * y) * inv;
+  Q(2, 2) = (diag + V(2) * w * w) * inv;
+  Q(0, 1) = (x * y - w) * two_inv;
+  Q(1, 0) = (x * y + w) * two_inv;
+  Q(0, 2) = (x * w + y) * two_inv;
+  Q(2, 0) = (x * w - y) * two_inv;
+  Q(1, 2) = (y * w - x) * two_inv;
+  Q(2, 1) = (y * w + x) * two_inv;
+  return Q;
+}
+
+}  // namespace CPU_CAPABILITY
+}  // namespace kernel
+}  // namespace torchrot

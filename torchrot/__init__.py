@@ -1,0 +1,18 @@
+"""torchrot: fast, exact least-squares rotation fitting for PyTorch.
+
+``fit_rotation(M)`` returns the rotation R (det R = +1) that maximises
+tr(R^T M), i.e. the rotation nearest to M in the Frobenius norm. Column-vector
+convention: for centred point sets, M = sum_i w_i y_i x_i^T gives R x_i ~ y_i.
+"""
+from torchrot import _C  # noqa: F401  (registers torch.ops.torchrot.*)
+from torchrot._ops import FitInfo, fit_rotation, fit_rotation_info
+from torchrot.reference import fit_rotation_reference, rotation_svd
+
+__all__ = [
+    "FitInfo",
+    "fit_rotation",
+    "fit_rotation_info",
+    "fit_rotation_reference",
+    "rotation_svd",
+]
+__version__ = "0.1.0"

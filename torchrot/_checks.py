@@ -1,0 +1,73 @@
+"""Argument checks shared by the Python-side kernels (fake and pure PyTorch).
+
+They mirror the checks of the C++ CPU operator (csrc/ops.cpp), so every device
+and every tracing mode rejects the same arguments with the same message.
+"""
+from __future__ import annotations
+
+import torch
+
+OP_NAME = "torchrot.fit_rotation"
+VARIANTS = ("newton", "conservative", "gershgorin")
+SUPPORTED_DTYPES = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
+
+
+def check_matrix_arg(t: torch.Tensor, name: str) -> None:
+    if not isinstance(t, torch.Tensor):
+        raise TypeError(f"{OP_NAME}: {name} must be a torch.Tensor, got {type(t).__name__}")
+    if t.dim() < 2 or t.shape[-1] != 3 or t.shape[-2] != 3:
+        raise ValueError(f"{OP_NAME}: {name} must have shape (..., 3, 3), got {list(t.shape)}")
+    if t.dtype not in SUPPORTED_DTYPES:
+        raise TypeError(
+            f"{OP_NAME}: {name} must be float32, float64, float16 or bfloat16, got {t.dtype}"
+        )
+
+
+def check_options(max_iter, variant) -> None:
+    if max_iter is not None:
+        if isinstance(max_iter, bool) or not isinstance(max_iter, int):
+            raise TypeError(f"{OP_NAME}: max_iter must be None or an int >= 1, got {max_iter!r}")
+        if max_iter < 1:
+            raise ValueError(
+                f"{OP_NAME}: max_iter must be None (iterate to convergence) or >= 1, got {max_iter}"
+            )
+    if variant not in VARIANTS:
+        raise ValueError(
+            f"{OP_NAME}: variant must be one of 'newton', 'conservative', 'gershgorin', got {variant!r}"
+        )
+
+
+def check_init(M: torch.Tensor, init: torch.Tensor | None) -> None:
+    check_matrix_arg(M, "M")
+    if init is None:
+        return
+    check_matrix_arg(init, "init")
+    if init.device != M.device:
+        raise ValueError(f"{OP_NAME}: init must be on M's device ({M.device}), got {init.device}")
+    if init.dtype != M.dtype:
+        raise TypeError(f"{OP_NAME}: init must have M's dtype ({M.dtype}), got {init.dtype}")
+    batch, init_batch = M.shape[:-2], init.shape[:-2]
+    try:
+        ok = len(init_batch) <= len(batch) and torch.broadcast_shapes(init_batch, batch) == batch
+    except RuntimeError:
+        ok = False
+    if not ok:
+        raise ValueError(
+            f"{OP_NAME}: init of shape {list(init.shape)} must broadcast to M's shape {list(M.shape)}"
+        )
+
+
+def check_out(M: torch.Tensor, out: torch.Tensor) -> None:
+    if not isinstance(out, torch.Tensor):
+        raise TypeError(f"{OP_NAME}: out must be a torch.Tensor, got {type(out).__name__}")
+    if out.device != M.device:
+        raise ValueError(f"{OP_NAME}: out must be on M's device ({M.device}), got {out.device}")
+    if out.dtype != M.dtype:
+        raise TypeError(f"{OP_NAME}: out must have M's dtype ({M.dtype}), got {out.dtype}")
+    if out.shape != M.shape:
+        raise ValueError(f"{OP_NAME}: out must have M's shape {list(M.shape)}, got {list(out.shape)}")
+
+
+def check_all(M, init, max_iter, variant) -> None:
+    check_init(M, init)
+    check_options(max_iter, variant)

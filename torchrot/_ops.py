@@ -1,0 +1,154 @@
+"""Python API over torch.ops.torchrot.*, plus the fake and non-CPU kernels.
+
+The operator schemas and the CPU kernels are registered in C++ (csrc/ops.cpp).
+Here: the thin public wrappers, the fake kernels that let torch.compile trace
+the ops, and the pure-PyTorch kernel (torchrot.reference) for other devices.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from torchrot._checks import check_all, check_out
+from torchrot.reference import fit_rotation_reference
+
+_OTHER_DEVICES = ("cuda", "xpu", "mps")
+
+
+class FitInfo(NamedTuple):
+    """Result of :func:`fit_rotation_info`.
+
+    R: ``(..., 3, 3)`` the fitted rotations.
+    iterations: ``(...)`` int32, Cayley steps taken per matrix.
+    status: ``(...)`` uint8 per matrix: 0 Cayley iteration, 1 fallback
+        (Horn/Jacobi, converged mode only), 3 non-finite input (R is NaN).
+    """
+
+    R: torch.Tensor
+    iterations: torch.Tensor
+    status: torch.Tensor
+
+
+def fit_rotation(
+    M: torch.Tensor,
+    init: torch.Tensor | None = None,
+    *,
+    max_iter: int | None = None,
+    variant: str = "conservative",
+    out: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The rotation R (det R = +1) maximising tr(R^T M): the rotation nearest to M.
+
+    Column-vector convention: for centred point sets x_i, y_i and weights w_i,
+    ``M = sum_i w_i y_i x_i^T`` gives ``R x_i ~ y_i``. Implements Algorithm 1 of
+    Zhang, Jacobson & Alexa, "Fast Updates for Least-Squares Rotational
+    Alignment", with the Cayley step of their Algorithm 2.
+
+    Args:
+        M: ``(..., 3, 3)`` float32 or float64 (float16/bfloat16 are computed in
+            float32 and returned in their dtype); any batch shape and strides.
+        init: optional ``(..., 3, 3)`` rotations broadcastable to M, same dtype
+            and device: the warm start R0 (e.g. the previous iteration's R).
+            Must be rotations up to 1e-4 (float32) / 1e-7 (float64); they are
+            re-orthonormalised (one Newton-Schulz step) before use, so results
+            fed back call after call do not drift. Without init, a cold start
+            picks the best of 12 pre-rotations.
+        max_iter: ``None`` (default) iterates each matrix to convergence at its
+            dtype's precision and guarantees the maximum (a Horn/Jacobi
+            fallback takes over matrices that do not converge within 12 steps
+            or stop at a saddle point). ``k >= 1`` takes at most k Cayley steps
+            with the chosen variant and no fallback: ``max_iter=1`` with
+            ``init`` is the paper's one-step warm start for local-global
+            solvers. The result is always an exact rotation.
+        variant: how each step estimates the maximal objective c (paper
+            Sec. 4.2): ``"newton"`` (c = tr M), ``"conservative"``
+            (c = sqrt(tr(M)^2 + m^T m)) or ``"gershgorin"`` (Eqs. 27-28). With
+            ``max_iter=None``, steps below ~1 degree switch to Newton.
+        out: optional tensor of M's shape, dtype and device to write into; it
+            may be ``init`` or ``M`` itself (an in-place warm-start update).
+
+    Returns:
+        ``(..., 3, 3)`` rotations, M's dtype. A matrix whose M or init holds
+        NaN/Inf gives NaN; other matrices are unaffected. Where the maximiser
+        is not unique (M = 0, rank-1 M, ...) a maximising rotation is returned
+        deterministically (for M = 0: init, else the identity).
+
+    Raises:
+        ValueError / TypeError / RuntimeError naming the argument: M not
+        ``(..., 3, 3)`` or not floating point; init of another shape, dtype or
+        device, or not a rotation; out of the wrong shape, dtype or device, or
+        overlapping itself or partially overlapping M or init; unknown variant;
+        max_iter < 1.
+
+    Autograd is not supported yet (no gradient flows through this op).
+    """
+    if out is None:
+        return torch.ops.torchrot.fit_rotation(M, init, max_iter, variant)
+    torch.ops.torchrot.fit_rotation_out(M, init, max_iter, variant, out)
+    return out
+
+
+def fit_rotation_info(
+    M: torch.Tensor,
+    init: torch.Tensor | None = None,
+    *,
+    max_iter: int | None = None,
+    variant: str = "conservative",
+) -> FitInfo:
+    """:func:`fit_rotation` plus per-matrix diagnostics.
+
+    Same arguments, convention (R maximises tr(R^T M); M = sum w y x^T gives
+    R x ~ y) and errors as :func:`fit_rotation`. Returns a :class:`FitInfo`
+    ``(R, iterations, status)``; iterations and status have M's batch shape.
+    """
+    return FitInfo(*torch.ops.torchrot.fit_rotation_info(M, init, max_iter, variant))
+
+
+# ---- fake kernels (shape propagation for torch.compile / FakeTensor / meta) ----
+
+
+def _empty_result(M: torch.Tensor) -> torch.Tensor:
+    return torch.empty(M.shape, dtype=M.dtype, device=M.device)
+
+
+@torch.library.register_fake("torchrot::fit_rotation")
+def _fit_rotation_fake(M, init=None, max_iter=None, variant="conservative"):
+    check_all(M, init, max_iter, variant)
+    return _empty_result(M)
+
+
+@torch.library.register_fake("torchrot::fit_rotation_out")
+def _fit_rotation_out_fake(M, init, max_iter, variant, out):
+    check_all(M, init, max_iter, variant)
+    check_out(M, out)
+
+
+@torch.library.register_fake("torchrot::fit_rotation_info")
+def _fit_rotation_info_fake(M, init=None, max_iter=None, variant="conservative"):
+    check_all(M, init, max_iter, variant)
+    batch = M.shape[:-2]
+    return (
+        _empty_result(M),
+        torch.empty(batch, dtype=torch.int32, device=M.device),
+        torch.empty(batch, dtype=torch.uint8, device=M.device),
+    )
+
+
+# ---- pure-PyTorch kernels for devices without a native one ----
+
+
+@torch.library.register_kernel("torchrot::fit_rotation", _OTHER_DEVICES)
+def _fit_rotation_other(M, init=None, max_iter=None, variant="conservative"):
+    return fit_rotation_reference(M, init, max_iter=max_iter, variant=variant)
+
+
+@torch.library.register_kernel("torchrot::fit_rotation_out", _OTHER_DEVICES)
+def _fit_rotation_out_other(M, init, max_iter, variant, out):
+    check_out(M, out)
+    out.copy_(fit_rotation_reference(M, init, max_iter=max_iter, variant=variant))
+
+
+@torch.library.register_kernel("torchrot::fit_rotation_info", _OTHER_DEVICES)
+def _fit_rotation_info_other(M, init=None, max_iter=None, variant="conservative"):
+    return fit_rotation_reference(M, init, max_iter=max_iter, variant=variant, return_info=True)
