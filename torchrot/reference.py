@@ -192,6 +192,38 @@ def _is_rotation(R: torch.Tensor, tol: float) -> torch.Tensor:
     return ortho & (torch.linalg.det(R) > 0)
 
 
+def _run_cayley_steps(A, R, cap: int, variant: str, switch_to_newton: bool, active, eps: float):
+    """Up to ``cap`` masked Cayley steps R <- R Q(z) (Algorithm 1's loop).
+
+    A matrix stops when its step is below eps or its H is singular (no step
+    taken), or if it is not ``active``. Returns R, steps taken per matrix,
+    whether each converged, and S = R^T A of each matrix's last step.
+    """
+    batch = A.shape[:-2]
+    iterations = torch.zeros(batch, dtype=torch.int32, device=A.device)
+    done = ~active.expand(batch)
+    converged = torch.zeros(batch, dtype=torch.bool, device=A.device)
+    newton = torch.zeros_like(converged)
+    S_last = torch.zeros_like(A)
+    for _ in range(cap):
+        S = R.mT @ A
+        z = _cayley_step(S, variant, newton if switch_to_newton else None)
+        zz = (z * z).sum(-1)
+        finite = torch.isfinite(zz)
+        step = ~done & finite
+        done = done | ~finite
+        z = torch.where(step[..., None], z, torch.zeros_like(z))
+        R = torch.where(step[..., None, None], R @ cayley_rotation(z), R)
+        S_last = torch.where(step[..., None, None], S, S_last)
+        iterations = iterations + step.to(torch.int32)
+        if switch_to_newton:
+            newton = newton | (step & (zz < NEWTON_SWITCH))
+        now_converged = step & (zz < eps)
+        converged = converged | now_converged
+        done = done | now_converged
+    return R, iterations, converged, S_last
+
+
 def fit_rotation_reference(
     M: torch.Tensor,
     init: torch.Tensor | None = None,
@@ -244,38 +276,28 @@ def fit_rotation_reference(
         C = start_candidates(compute, M.device)
         best = torch.einsum("kij,...ij->...k", C, A).argmax(-1)  # first maximum on ties
         R = C[best]
-    converge = max_iter is None
-    cap = CONVERGED_CAP if converge else max_iter
     eps = torch.finfo(compute).eps
-    iterations = torch.zeros(batch, dtype=torch.int32, device=M.device)
-    done = torch.zeros(batch, dtype=torch.bool, device=M.device)
-    converged = torch.zeros_like(done)
-    newton = torch.zeros_like(done)
-    S_last = torch.zeros_like(A)
     zero_matrix = max_abs == 0
-    for _ in range(cap):
-        S = R.mT @ A
-        z = _cayley_step(S, variant, newton if converge else None)
-        zz = (z * z).sum(-1)
-        active = ~done & torch.isfinite(zz)
-        done = done | ~torch.isfinite(zz)  # singular H: stop without a step
-        z = torch.where(active[..., None], z, torch.zeros_like(z))
-        R = torch.where(active[..., None, None], R @ cayley_rotation(z), R)
-        S_last = torch.where(active[..., None, None], S, S_last)
-        iterations = iterations + active.to(torch.int32)
-        if converge:
-            newton = newton | (active & (zz < NEWTON_SWITCH))
-        now_converged = active & (zz < eps)
-        converged = converged | now_converged
-        done = done | now_converged
     status = torch.zeros(batch, dtype=torch.uint8, device=M.device)
-    if converge:
-        ok = converged & _is_maximum(S_last, MAX_CHECK_SLACK_EPS * eps)
-        use_fallback = ~ok & ~zero_matrix & finite
-        R = torch.where(use_fallback[..., None, None], _horn_rotation(A), R)
-        status = torch.where(use_fallback, STATUS_FALLBACK, status).to(torch.uint8)
     # M = 0 needs no case of its own: its step is 0/0, so it keeps the warm
     # start (else the first candidate, I) and is excluded from the fallback.
+    if max_iter is not None:
+        R, iterations, _, _ = _run_cayley_steps(A, R, max_iter, variant, False, finite, eps)
+    else:
+        R, iterations, converged, S = _run_cayley_steps(A, R, CONVERGED_CAP, variant, True, finite, eps)
+        accepted = converged & _is_maximum(S, MAX_CHECK_SLACK_EPS * eps)
+        # Saddle escape: restart once from the best pre-rotation in the current frame.
+        C = start_candidates(compute, M.device)
+        best = torch.einsum("kij,...ij->...k", C, R.mT @ A).argmax(-1)
+        restart = converged & ~accepted & (best != 0)
+        R = torch.where(restart[..., None, None], R @ C[best], R)
+        R, more, converged2, S2 = _run_cayley_steps(A, R, CONVERGED_CAP, variant, True, restart, eps)
+        iterations = iterations + more
+        accepted = accepted | (restart & converged2 & _is_maximum(S2, MAX_CHECK_SLACK_EPS * eps))
+        R = torch.where(accepted[..., None, None], _reorthonormalize(R), R)
+        use_fallback = ~accepted & ~zero_matrix & finite
+        R = torch.where(use_fallback[..., None, None], _horn_rotation(A), R)
+        status = torch.where(use_fallback, STATUS_FALLBACK, status).to(torch.uint8)
     nan = torch.full_like(R, float("nan"))
     R = torch.where(finite[..., None, None], R, nan)
     status = torch.where(finite, status, STATUS_NON_FINITE).to(torch.uint8)

@@ -114,6 +114,34 @@ inline Mat3<T> normalized(const Mat3<T>& M, T max_abs) {
   return A;
 }
 
+template <typename T>
+struct IterationEnd {
+  bool converged = false;
+  Mat3<T> last_S;  // S = R^T A of the last step taken
+};
+
+// Algorithm 1's loop: up to `cap` Cayley steps R <- R Q(z), stopping when a
+// step is below the convergence tolerance or H is singular (no step taken).
+template <typename T>
+inline IterationEnd<T> run_cayley_steps(const Mat3<T>& A, int64_t cap, Variant variant,
+                                        bool switch_to_newton, Mat3<T>& R, FitResult& result) {
+  using Tol = Tolerances<T>;
+  IterationEnd<T> end;
+  for (int64_t it = 0; it < cap; ++it) {
+    end.last_S = transpose_times(R, A);
+    const CayleyStep<T> step = cayley_step(end.last_S, variant);
+    if (!std::isfinite(step.zz)) break;
+    R = times(R, cayley_rotation(step));
+    ++result.iterations;
+    if (switch_to_newton && step.zz < Tol::newton_switch) variant = Variant::kNewton;
+    if (step.zz < Tol::converged) {
+      end.converged = true;
+      break;
+    }
+  }
+  return end;
+}
+
 // Fits the rotation maximising tr(R^T M) for one matrix. `init` may be null.
 template <typename T>
 inline FitResult fit_rotation_one(const Mat3<T>& M, const Mat3<T>* init,
@@ -141,28 +169,30 @@ inline FitResult fit_rotation_one(const Mat3<T>& M, const Mat3<T>* init,
   R = init != nullptr ? reorthonormalize(*init)
                       : start_candidate_rotation<T>(best_start_candidate(A));
 
-  const int64_t cap = converge ? Tol::converged_cap : options.max_iter;
-  Variant variant = options.variant;
-  bool converged = false;
-  Mat3<T> S;
-  for (int64_t it = 0; it < cap; ++it) {
-    S = transpose_times(R, A);
-    const CayleyStep<T> step = cayley_step(S, variant);
-    if (!std::isfinite(step.zz)) break;  // singular H: no step (see below)
-    R = times(R, cayley_rotation(step));
-    ++result.iterations;
-    if (converge && step.zz < Tol::newton_switch) variant = Variant::kNewton;
-    if (step.zz < Tol::converged) {
-      converged = true;
-      break;
+  if (!converge) {
+    run_cayley_steps(A, options.max_iter, options.variant, /*switch_to_newton=*/false, R, result);
+    return result;
+  }
+  // Converged mode. A fixed point that fails the second-order check is a
+  // saddle: restart once from the best pre-rotation in the current frame
+  // (the cold-start candidates applied to S = R^T A); if the iteration still
+  // does not reach a verified maximum, the fallback decides.
+  for (int attempt = 0; attempt < 2; ++attempt) {
+    const IterationEnd<T> end =
+        run_cayley_steps(A, Tol::converged_cap, options.variant, /*switch_to_newton=*/true, R, result);
+    if (end.converged && is_maximum(end.last_S, Tol::max_check_slack)) {
+      // Products of Cayley factors accumulate rounding; one Newton-Schulz
+      // step brings R back to orthonormal at the dtype's precision.
+      R = reorthonormalize(R);
+      return result;
     }
+    if (!end.converged || attempt > 0) break;
+    const int k = best_start_candidate(transpose_times(R, A));
+    if (k == 0) break;  // no pre-rotation improves on the saddle
+    R = times(R, start_candidate_rotation<T>(k));
   }
-  // In converged mode the result must be verifiably the maximum; S is the
-  // matrix of the last (tiny) step, so it is symmetric up to that step.
-  if (converge && !(converged && is_maximum(S, Tol::max_check_slack))) {
-    R = horn_rotation(A);
-    result.status = FitStatus::kFallback;
-  }
+  R = horn_rotation(A);
+  result.status = FitStatus::kFallback;
   return result;
 }
 

@@ -1,0 +1,185 @@
+"""Test and benchmark data: matrix distributions and accuracy metrics.
+
+Shared by ``tests/`` and ``benchmarks/`` so that speed is always measured on the
+same data that correctness is checked on. Every generator is deterministic in
+its seed and builds float64 matrices (cast afterwards if needed).
+
+Convention: the answer R* maximises tr(R^T M) (column vectors; M = sum w y x^T
+gives R x ~ y); ``rotation_svd`` in float64 is the reference.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import torch
+
+from torchrot.reference import cayley_rotation, rotation_svd
+
+Generator = Callable[[int, torch.Generator], torch.Tensor]
+
+
+def random_rotations(n: int, gen: torch.Generator, max_angle: float = math.pi) -> torch.Tensor:
+    """``(n, 3, 3)`` rotations with uniform random axes and angles in [0, max_angle]."""
+    axis = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    angle = torch.rand(n, generator=gen, dtype=torch.float64) * max_angle
+    return cayley_rotation(axis * torch.tan(angle / 2).unsqueeze(-1))
+
+
+def random_spd(n: int, gen: torch.Generator, cond: float) -> torch.Tensor:
+    """``(n, 3, 3)`` symmetric positive definite stretches with condition number
+    ``cond``: eigenvalues 1, cond and one log-uniform between, random eigenbasis."""
+    Q = random_rotations(n, gen)
+    log_mid = torch.rand(n, generator=gen, dtype=torch.float64) * math.log(cond)
+    eig = torch.stack([torch.ones(n, dtype=torch.float64), torch.full((n,), float(cond)), log_mid.exp()], -1)
+    return Q @ torch.diag_embed(eig) @ Q.mT
+
+
+def _with_singular_values(n: int, gen: torch.Generator, sigma: torch.Tensor) -> torch.Tensor:
+    U, V = random_rotations(n, gen), random_rotations(n, gen)
+    return U @ torch.diag_embed(sigma) @ V.mT
+
+
+def _warm(cond: float, max_angle: float) -> Generator:
+    return lambda n, gen: random_rotations(n, gen, max_angle) @ random_spd(n, gen, cond)
+
+
+def _gaussian_det_negative(n: int, gen: torch.Generator) -> torch.Tensor:
+    G = torch.randn(n, 3, 3, generator=gen, dtype=torch.float64)
+    flip = torch.linalg.det(G) > 0
+    G[flip, 0] *= -1
+    return G
+
+
+def _rank2(n: int, gen: torch.Generator) -> torch.Tensor:
+    sigma = torch.rand(n, 3, generator=gen, dtype=torch.float64) + 0.1
+    sigma[:, 2] = 0
+    return _with_singular_values(n, gen, sigma)
+
+
+def _rank1(n: int, gen: torch.Generator) -> torch.Tensor:
+    a = torch.randn(n, 3, 1, generator=gen, dtype=torch.float64)
+    b = torch.randn(n, 1, 3, generator=gen, dtype=torch.float64)
+    return a @ b
+
+
+def _ill_conditioned(n: int, gen: torch.Generator) -> torch.Tensor:
+    """Condition numbers 1e3..1e7, det of either sign."""
+    log_cond = 3 + 4 * torch.rand(n, generator=gen, dtype=torch.float64)
+    smallest = 10.0 ** (-log_cond)
+    middle = smallest ** torch.rand(n, generator=gen, dtype=torch.float64)
+    sign = torch.where(torch.rand(n, generator=gen, dtype=torch.float64) < 0.5, -1.0, 1.0)
+    sigma = torch.stack([torch.ones(n, dtype=torch.float64), middle, sign * smallest], -1)
+    return _with_singular_values(n, gen, sigma)
+
+
+def _scaled(base: Generator, scale: float) -> Generator:
+    return lambda n, gen: base(n, gen) * scale
+
+
+def _symmetric(n: int, gen: torch.Generator) -> torch.Tensor:
+    G = torch.randn(n, 3, 3, generator=gen, dtype=torch.float64)
+    return G + G.mT
+
+
+def _gaussian(n: int, gen: torch.Generator) -> torch.Tensor:
+    return torch.randn(n, 3, 3, generator=gen, dtype=torch.float64)
+
+
+def _uniform(n: int, gen: torch.Generator) -> torch.Tensor:
+    return torch.rand(n, 3, 3, generator=gen, dtype=torch.float64)
+
+
+#: name -> generator(n, torch.Generator) of float64 ``(n, 3, 3)`` matrices.
+DISTRIBUTIONS: dict[str, Generator] = {
+    # small remaining rotations x SPD stretch: the paper's warm-start data
+    "warm": _warm(1e3, math.radians(15)),
+    "warm_cond1e5": _warm(1e5, math.radians(15)),
+    "rot60": _warm(10.0, math.radians(60)),
+    "rot180": _warm(10.0, math.radians(179.9)),
+    "rot180_exact": lambda n, gen: random_rotations(n, gen, math.radians(179.9)),
+    "uniform": _uniform,
+    "gaussian": _gaussian,
+    "det_negative": _gaussian_det_negative,
+    "rank2": _rank2,
+    "rank1": _rank1,
+    "ill_conditioned": _ill_conditioned,
+    "symmetric": _symmetric,
+    "tiny": _scaled(_gaussian, 1e-30),
+    "huge": _scaled(_gaussian, 1e30),
+}
+
+#: Distributions whose optimal rotation is unique and well conditioned
+#: (smallest sigma_i + sigma_j well away from 0), where R itself is compared.
+WELL_CONDITIONED = ("warm", "rot60", "rot180", "rot180_exact", "uniform")
+
+
+def make_matrices(name: str, n: int, seed: int = 0, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """``(n, 3, 3)`` matrices of distribution ``name`` (see DISTRIBUTIONS)."""
+    if name not in DISTRIBUTIONS:
+        raise ValueError(f"unknown distribution {name!r}; known: {sorted(DISTRIBUTIONS)}")
+    gen = torch.Generator().manual_seed(seed)
+    return DISTRIBUTIONS[name](n, gen).to(dtype)
+
+
+def edge_case_matrices(dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """Hand-picked matrices where iterative methods break: ``(k, 3, 3)``."""
+    pi_x = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+    gen = torch.Generator().manual_seed(1234)
+    near_pi = random_rotations(4, gen, math.pi)
+    axis = torch.randn(4, 3, generator=gen, dtype=torch.float64)
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    near_pi = cayley_rotation(axis * math.tan((math.pi - 1e-6) / 2))
+    cases = [
+        torch.zeros(3, 3, dtype=torch.float64),
+        torch.eye(3, dtype=torch.float64),
+        -torch.eye(3, dtype=torch.float64),
+        torch.diag(torch.tensor([2.0, 2.0, 1.0], dtype=torch.float64)),
+        torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)),
+        torch.diag(torch.tensor([3.0, -2.0, -1.0], dtype=torch.float64)),
+        torch.diag(torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)),
+        torch.diag(torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64)),
+        pi_x,
+        torch.ones(3, 3, dtype=torch.float64),
+        torch.tensor([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]], dtype=torch.float64),
+        torch.tensor([[1e30, 0, 0], [0, 1e-30, 0], [0, 0, 1e-30]], dtype=torch.float64),
+        torch.full((3, 3), 1e-40, dtype=torch.float64),  # subnormal in float32
+        *near_pi,
+    ]
+    return torch.stack(cases).to(dtype)
+
+
+def objective(R: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+    """tr(R^T M) per matrix, in float64."""
+    return (R.double() * M.double()).sum((-2, -1))
+
+
+def rotation_errors(R: torch.Tensor, M: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per-matrix accuracy of rotations R fitted to M, against float64 SVD.
+
+    Returns float64 tensors of M's batch shape:
+      orthonormality: max |R^T R - I|;
+      det: |det R - 1|;
+      shortfall: (tr(R*^T M) - tr(R^T M)) / |M|_F  (0 for M = 0);
+      distance: |R - R*|_F (meaningful only where R* is unique).
+    """
+    Rd, Md = R.double(), M.double()
+    eye = torch.eye(3, dtype=torch.float64)
+    R_star = rotation_svd(Md)
+    norm = Md.norm(dim=(-2, -1))
+    safe = torch.where(norm > 0, norm, torch.ones_like(norm))
+    return {
+        "orthonormality": (Rd.mT @ Rd - eye).abs().amax((-2, -1)),
+        "det": (torch.linalg.det(Rd) - 1).abs(),
+        "shortfall": (objective(R_star, Md) - objective(Rd, Md)) / safe,
+        "distance": (Rd - R_star).norm(dim=(-2, -1)),
+    }
+
+
+#: Acceptance criteria per dtype (issue #2): max orthonormality / det error
+#: and max relative objective shortfall.
+CRITERIA = {
+    torch.float32: {"orthonormality": 1e-6, "det": 1e-6, "shortfall": 2e-6},
+    torch.float64: {"orthonormality": 1e-13, "det": 1e-13, "shortfall": 1e-12},
+}
