@@ -20,6 +20,7 @@ from torchrot._checks import OP_NAME, check_all
 
 # Mirrors kernel::Tolerances (csrc/kernel/fit_rotation_impl.h).
 CONVERGED_CAP = 12
+MAX_ESCAPES = 2
 NEWTON_SWITCH = 1e-4
 MAX_CHECK_SLACK_EPS = 4.0
 INIT_ORTHONORMALITY = {torch.float32: 1e-4, torch.float64: 1e-7}
@@ -154,6 +155,28 @@ def start_candidates(dtype=torch.float64, device=None) -> torch.Tensor:
     return quaternion_rotation(torch.tensor(q, dtype=dtype, device=device))
 
 
+def saddle_escape_rotation(S: torch.Tensor, squarings: int = 4) -> torch.Tensor:
+    """Half-turn about the top eigenvector of sym(S) (csrc/kernel/saddle_escape.h).
+
+    At a fixed point with lambda_0 + lambda_1 < 0 (a saddle) this rotation
+    leads to the maximum (paper Sec. 3, Eq. 18). The eigenvector comes from
+    repeated squaring of sym(S) shifted by its Gershgorin lower bound.
+    """
+    eye = torch.eye(3, dtype=S.dtype, device=S.device)
+    B = 0.5 * (S + S.mT)
+    diag = B.diagonal(dim1=-2, dim2=-1)
+    lower = (diag - (B.abs().sum(-1) - diag.abs())).amin(-1)
+    B = B - lower[..., None, None] * eye
+    for _ in range(squarings):
+        B = B / _trace(B)[..., None, None]
+        B = B @ B
+    norms = (B * B).sum(-2)
+    best = norms.argmax(-1, keepdim=True)
+    v = torch.gather(B, -1, best.unsqueeze(-2).expand(B.shape[:-1] + (1,))).squeeze(-1)
+    vv = torch.gather(norms, -1, best)
+    return 2 * v.unsqueeze(-1) * v.unsqueeze(-2) / vv.unsqueeze(-1) - eye
+
+
 def _horn_rotation(A: torch.Tensor) -> torch.Tensor:
     """Fallback: Horn's quaternion method in float64 (eigh of K)."""
     K = horn_matrix(A.to(torch.float64))
@@ -286,14 +309,12 @@ def fit_rotation_reference(
     else:
         R, iterations, converged, S = _run_cayley_steps(A, R, CONVERGED_CAP, variant, True, finite, eps)
         accepted = converged & _is_maximum(S, MAX_CHECK_SLACK_EPS * eps)
-        # Saddle escape: restart once from the best pre-rotation in the current frame.
-        C = start_candidates(compute, M.device)
-        best = torch.einsum("kij,...ij->...k", C, R.mT @ A).argmax(-1)
-        restart = converged & ~accepted & (best != 0)
-        R = torch.where(restart[..., None, None], R @ C[best], R)
-        R, more, converged2, S2 = _run_cayley_steps(A, R, CONVERGED_CAP, variant, True, restart, eps)
-        iterations = iterations + more
-        accepted = accepted | (restart & converged2 & _is_maximum(S2, MAX_CHECK_SLACK_EPS * eps))
+        for _ in range(MAX_ESCAPES):  # saddle escapes (csrc/kernel/saddle_escape.h)
+            restart = converged & ~accepted
+            R = torch.where(restart[..., None, None], R @ saddle_escape_rotation(R.mT @ A), R)
+            R, more, converged, S = _run_cayley_steps(A, R, CONVERGED_CAP, variant, True, restart, eps)
+            iterations = iterations + more
+            accepted = accepted | (restart & converged & _is_maximum(S, MAX_CHECK_SLACK_EPS * eps))
         R = torch.where(accepted[..., None, None], _reorthonormalize(R), R)
         use_fallback = ~accepted & ~zero_matrix & finite
         R = torch.where(use_fallback[..., None, None], _horn_rotation(A), R)

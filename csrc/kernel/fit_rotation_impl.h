@@ -10,6 +10,7 @@
 #include "cayley.h"
 #include "cold_start.h"
 #include "horn_fallback.h"
+#include "saddle_escape.h"
 
 namespace torchrot {
 namespace kernel {
@@ -37,8 +38,11 @@ struct Tolerances {
   static constexpr T max_check_slack = T(4) * eps;
   // Warm starts must be rotations to this orthonormality error.
   static constexpr T init_orthonormality = sizeof(T) == 4 ? T(1e-4) : T(1e-7);
-  // Cayley steps allowed in converged mode before the fallback takes over.
+  // Cayley steps allowed in converged mode (per start or saddle escape)
+  // before the fallback takes over.
   static constexpr int converged_cap = 12;
+  // Saddle escapes allowed in converged mode.
+  static constexpr int max_escapes = 2;
 };
 
 template <typename T>
@@ -174,10 +178,10 @@ inline FitResult fit_rotation_one(const Mat3<T>& M, const Mat3<T>* init,
     return result;
   }
   // Converged mode. A fixed point that fails the second-order check is a
-  // saddle: restart once from the best pre-rotation in the current frame
-  // (the cold-start candidates applied to S = R^T A); if the iteration still
-  // does not reach a verified maximum, the fallback decides.
-  for (int attempt = 0; attempt < 2; ++attempt) {
+  // saddle: escape it by a half-turn (saddle_escape.h) and iterate again, at
+  // most Tolerances::max_escapes times; whatever has not reached a verified maximum by
+  // then goes to the fallback.
+  for (int attempt = 0; attempt <= Tol::max_escapes; ++attempt) {
     const IterationEnd<T> end =
         run_cayley_steps(A, Tol::converged_cap, options.variant, /*switch_to_newton=*/true, R, result);
     if (end.converged && is_maximum(end.last_S, Tol::max_check_slack)) {
@@ -186,10 +190,8 @@ inline FitResult fit_rotation_one(const Mat3<T>& M, const Mat3<T>* init,
       R = reorthonormalize(R);
       return result;
     }
-    if (!end.converged || attempt > 0) break;
-    const int k = best_start_candidate(transpose_times(R, A));
-    if (k == 0) break;  // no pre-rotation improves on the saddle
-    R = times(R, start_candidate_rotation<T>(k));
+    if (!end.converged) break;
+    R = times(R, saddle_escape_rotation(transpose_times(R, A)));
   }
   R = horn_rotation(A);
   result.status = FitStatus::kFallback;
