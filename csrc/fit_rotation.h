@@ -5,6 +5,7 @@
 #include <ATen/core/Tensor.h>
 
 #include <cstdint>
+#include <string>
 
 namespace torchrot {
 
@@ -34,6 +35,10 @@ enum class FitStatus : uint8_t {
 // alias M or init exactly. `iterations` (int32, N) and `status` (uint8, N)
 // are optional per-matrix diagnostics. Returns the number of matrices whose
 // warm start was not a rotation.
+// The kernel object fit_rotation_cpu uses now: "scalar", "default", "avx2"
+// or "avx512" (see cpu/dispatch.cpp).
+std::string cpu_kernel_name();
+
 int64_t fit_rotation_cpu(const at::Tensor& M, const at::Tensor* init,
                          const at::Tensor& out, const FitOptions& options,
                          const at::Tensor* iterations, const at::Tensor* status);

@@ -151,6 +151,8 @@ TORCH_LIBRARY(torchrot, m) {
   m.def(
       "fit_rotation_info(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\") "
       "-> (Tensor R, Tensor iterations, Tensor status)");
+  // Which CPU kernel object runs: "scalar", "default", "avx2" or "avx512".
+  m.def("cpu_kernel() -> str", [] { return cpu_kernel_name(); });
 }
 
 TORCH_LIBRARY_IMPL(torchrot, CPU, m) {

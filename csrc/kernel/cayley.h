@@ -1,6 +1,6 @@
 // The Cayley step of Zhang, Jacobson & Alexa, "Fast Updates for Least-Squares
 // Rotational Alignment" (Algorithm 2), and the Cayley map back to a rotation
-// (Eq. 10), written once for any lane type `V` (see mat3.h).
+// (Eq. 10), written once for any lane type L (lanes.h).
 //
 // Convention. torchrot maximises tr(R^T M). Writing R = R0 Q, the objective is
 // tr(Q^T S) with S = R0^T M, which is the paper's tr(M_p Q) for M_p = S^T. All
@@ -15,60 +15,61 @@
 #pragma once
 
 #include "../fit_rotation.h"
+#include "lanes.h"
 #include "mat3.h"
 
 namespace torchrot {
 namespace kernel {
 inline namespace CPU_CAPABILITY {
-
-// Lane-type helpers; overloads for Vectorized<T> live beside the SIMD kernels.
-inline float lane_sqrt(float x) { return __builtin_sqrtf(x); }
-inline double lane_sqrt(double x) { return __builtin_sqrt(x); }
-inline float lane_abs(float x) { return __builtin_fabsf(x); }
-inline double lane_abs(double x) { return __builtin_fabs(x); }
-inline float lane_max(float a, float b) { return a > b ? a : b; }
-inline double lane_max(double a, double b) { return a > b ? a : b; }
+namespace {
 
 template <typename V>
 struct CayleyStep {
-  V z[3];   // the Cayley parameters of the update Q
-  V zz;     // z.z, the paper's s = tan^2(theta / 2)
+  V z[3];  // the Cayley parameters of the update Q
+  V zz;    // z.z, the paper's s = tan^2(theta / 2)
 };
 
-// Estimate of the maximal objective for `variant` (Eqs. 26-28).
 template <typename V>
-inline V objective_estimate(const Mat3<V>& S, V t, V mm, Variant variant) {
-  switch (variant) {
-    case Variant::kNewton:
-      return t;
-    case Variant::kConservative:
-      return lane_sqrt(t * t + mm);
-    case Variant::kGershgorin: {
-      // 2 lambda_2 <= max_i (2 S_ii + sum_{j != i} |S_ij + S_ji|)  (Eq. 28)
-      V s01 = lane_abs(S(0, 1) + S(1, 0));
-      V s02 = lane_abs(S(0, 2) + S(2, 0));
-      V s12 = lane_abs(S(1, 2) + S(2, 1));
-      V two_lambda2 = lane_max(V(2) * S(0, 0) + s01 + s02,
-                               lane_max(V(2) * S(1, 1) + s01 + s12,
-                                        V(2) * S(2, 2) + s02 + s12));
-      V g_sym = lane_max(t, two_lambda2 - t);
-      return lane_sqrt(g_sym * g_sym + mm);  // Eq. 27
-    }
-  }
-  return t;
+inline V trace(const Mat3<V>& S) {
+  return S(0, 0) + S(1, 1) + S(2, 2);
 }
 
-// Algorithm 2: solve (S + S^T - (t + c) I) z = -m by Cramer's rule
-// (Eqs. 30-33), using the symmetric adjugate of H.
 template <typename V>
-inline CayleyStep<V> cayley_step(const Mat3<V>& S, Variant variant) {
-  const V m0 = S(2, 1) - S(1, 2);
-  const V m1 = S(0, 2) - S(2, 0);
-  const V m2 = S(1, 0) - S(0, 1);
-  const V t = S(0, 0) + S(1, 1) + S(2, 2);
-  const V mm = m0 * m0 + m1 * m1 + m2 * m2;
-  const V shift = t + objective_estimate(S, t, mm, variant);
+inline void skew_vector(const Mat3<V>& S, V m[3]) {  // Eq. 12
+  m[0] = S(2, 1) - S(1, 2);
+  m[1] = S(0, 2) - S(2, 0);
+  m[2] = S(1, 0) - S(0, 1);
+}
 
+// The estimate c of the maximal objective for `variant` (Sec. 4.2).
+template <typename L>
+inline typename L::V objective_estimate(const Mat3<typename L::V>& S, Variant variant) {
+  using V = typename L::V;
+  const V t = trace(S);
+  if (variant == Variant::kNewton) return t;  // Eq. 21: the Taylor model at 0
+  V m[3];
+  skew_vector(S, m);
+  const V mm = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
+  V g_sym = t;  // conservative: max g_S ~ tr S
+  if (variant == Variant::kGershgorin) {
+    // 2 lambda_2 <= max_i (2 S_ii + sum_{j != i} |S_ij + S_ji|)   (Eq. 28)
+    const V s01 = L::abs(S(0, 1) + S(1, 0));
+    const V s02 = L::abs(S(0, 2) + S(2, 0));
+    const V s12 = L::abs(S(1, 2) + S(2, 1));
+    const V two_lambda2 = L::max(V(2) * S(0, 0) + s01 + s02,
+                                 L::max(V(2) * S(1, 1) + s01 + s12, V(2) * S(2, 2) + s02 + s12));
+    g_sym = L::max(t, two_lambda2 - t);
+  }
+  return L::sqrt(g_sym * g_sym + mm);  // Eqs. 26-27
+}
+
+// Algorithm 2 for a given c: solve (S + S^T - (t + c) I) z = -m by Cramer's
+// rule (Eqs. 30-33), written with the symmetric adjugate of H.
+template <typename V>
+inline CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
+  V m[3];
+  skew_vector(S, m);
+  const V shift = trace(S) + c;
   const V h00 = V(2) * S(0, 0) - shift;
   const V h11 = V(2) * S(1, 1) - shift;
   const V h22 = V(2) * S(2, 2) - shift;
@@ -85,9 +86,9 @@ inline CayleyStep<V> cayley_step(const Mat3<V>& S, Variant variant) {
   const V neg_inv_det = V(-1) / (h00 * c00 + h01 * c01 + h02 * c02);
 
   CayleyStep<V> step;
-  step.z[0] = (c00 * m0 + c01 * m1 + c02 * m2) * neg_inv_det;
-  step.z[1] = (c01 * m0 + c11 * m1 + c12 * m2) * neg_inv_det;
-  step.z[2] = (c02 * m0 + c12 * m1 + c22 * m2) * neg_inv_det;
+  step.z[0] = (c00 * m[0] + c01 * m[1] + c02 * m[2]) * neg_inv_det;
+  step.z[1] = (c01 * m[0] + c11 * m[1] + c12 * m[2]) * neg_inv_det;
+  step.z[2] = (c02 * m[0] + c12 * m[1] + c22 * m[2]) * neg_inv_det;
   step.zz = step.z[0] * step.z[0] + step.z[1] * step.z[1] + step.z[2] * step.z[2];
   return step;
 }
@@ -112,6 +113,7 @@ inline Mat3<V> cayley_rotation(const CayleyStep<V>& step) {
   return Q;
 }
 
+}  // namespace
 }  // namespace CPU_CAPABILITY
 }  // namespace kernel
 }  // namespace torchrot

@@ -1,6 +1,8 @@
-// Algorithm 1 for one matrix: cold or warm start, Cayley steps until the
-// matrix's own convergence, a check that the fixed point is the maximum, and
-// the guaranteed fallback.
+// Algorithm 1 for a block of L::width matrices (one per lane): cold or warm
+// start, Cayley steps until each lane's own convergence, a check that each
+// fixed point is the maximum, saddle escapes, and the guaranteed fallback.
+// Lanes that converge early are frozen (never re-stepped into noise); lanes
+// that need the fallback take it alone, after the block's vector work.
 #pragma once
 
 #include <cmath>
@@ -10,16 +12,14 @@
 #include "cayley.h"
 #include "cold_start.h"
 #include "horn_fallback.h"
+#include "lanes.h"
+#include "optimality.h"
 #include "saddle_escape.h"
 
 namespace torchrot {
 namespace kernel {
 inline namespace CPU_CAPABILITY {
-
-struct FitResult {
-  int32_t iterations = 0;
-  FitStatus status = FitStatus::kCayley;
-};
+namespace {
 
 template <typename T>
 struct Tolerances {
@@ -34,170 +34,146 @@ struct Tolerances {
   // and, this close to a maximum, no risk of overshooting (Sec. 4.2).
   static constexpr T newton_switch = T(1e-4);
   // Slack of the second-order check: the objective may fall short of the
-  // maximum by at most 2 * slack * |M|_max.
+  // maximum by at most 2 * slack * max |M_ij|.
   static constexpr T max_check_slack = T(4) * eps;
   // Warm starts must be rotations to this orthonormality error.
   static constexpr T init_orthonormality = sizeof(T) == 4 ? T(1e-4) : T(1e-7);
-  // Cayley steps allowed in converged mode (per start or saddle escape)
-  // before the fallback takes over.
+  // Cayley steps allowed in converged mode per start or saddle escape.
   static constexpr int converged_cap = 12;
-  // Saddle escapes allowed in converged mode.
+  // Saddle escapes allowed in converged mode before the fallback decides.
   static constexpr int max_escapes = 2;
 };
 
-template <typename T>
-inline Mat3<T> nan_matrix() {
-  Mat3<T> R;
-  for (int i = 0; i < 9; ++i) R.a[i] = std::numeric_limits<T>::quiet_NaN();
-  return R;
-}
-
-// Largest |entry|, NaN if any entry is NaN.
-template <typename T>
-inline T max_abs_entry(const Mat3<T>& M) {
-  T result = T(0);
-  for (int i = 0; i < 9; ++i) {
-    const T a = std::fabs(M.a[i]);
-    if (!(a <= result)) result = a;  // also picks up NaN
-  }
-  return result;
-}
-
-template <typename T>
-inline bool all_finite(const Mat3<T>& M) {
-  for (int i = 0; i < 9; ++i)
-    if (!std::isfinite(M.a[i])) return false;
-  return true;
-}
-
-// Is R a proper rotation up to `tol` (max |R^T R - I| <= tol, det R > 0)?
-template <typename T>
-inline bool is_rotation(const Mat3<T>& R, T tol) {
-  const Mat3<T> G = transpose_times(R, R);
-  for (int i = 0; i < 9; ++i) {
-    if (!(std::fabs(G.a[i] - T(i % 4 == 0 ? 1 : 0)) <= tol)) return false;
-  }
-  const T det = R(0, 0) * (R(1, 1) * R(2, 2) - R(1, 2) * R(2, 1)) -
-                R(0, 1) * (R(1, 0) * R(2, 2) - R(1, 2) * R(2, 0)) +
-                R(0, 2) * (R(1, 0) * R(2, 1) - R(1, 1) * R(2, 0));
-  return det > T(0);
-}
-
-// Second-order check at a fixed point S = R^T M (S symmetric): R is the global
-// maximum iff the two smallest eigenvalues of sym(S) sum to >= 0, i.e. iff
-// tr(S) I - sym(S) is positive semidefinite (Sec. 3, analysis of g_S). Other
-// fixed points are saddles or minima reached by a Newton-type iteration.
-// Checked by Sylvester's criterion on tr(S) I - sym(S) + slack I.
-template <typename T>
-inline bool is_maximum(const Mat3<T>& S, T slack) {
-  const T t = S(0, 0) + S(1, 1) + S(2, 2) + slack;
-  const T p00 = t - S(0, 0), p11 = t - S(1, 1), p22 = t - S(2, 2);
-  const T p01 = T(-0.5) * (S(0, 1) + S(1, 0));
-  const T p02 = T(-0.5) * (S(0, 2) + S(2, 0));
-  const T p12 = T(-0.5) * (S(1, 2) + S(2, 1));
-  const T minor2 = p00 * p11 - p01 * p01;
-  const T det = p00 * (p11 * p22 - p12 * p12) - p01 * (p01 * p22 - p12 * p02) +
-                p02 * (p01 * p12 - p11 * p02);
-  return p00 > T(0) && minor2 > T(0) && det > T(0);
-}
-
-// Scales M so that its largest |entry| is 1: the objective's maximiser does
-// not change, and no product in the step over- or underflows for entries
-// anywhere between the smallest subnormal and the largest finite value.
-template <typename T>
-inline Mat3<T> normalized(const Mat3<T>& M, T max_abs) {
-  T pre = T(1);
-  if (max_abs < std::numeric_limits<T>::min()) {
-    // 1 / subnormal may overflow: lift by 2^digits first (exact).
-    pre = std::ldexp(T(1), std::numeric_limits<T>::digits);
-    max_abs *= pre;
-  }
-  const T inv = T(1) / max_abs;
-  Mat3<T> A;
-  for (int i = 0; i < 9; ++i) A.a[i] = (M.a[i] * pre) * inv;
-  return A;
-}
-
-template <typename T>
-struct IterationEnd {
-  bool converged = false;
-  Mat3<T> last_S;  // S = R^T A of the last step taken
+// Per-lane outcome of fit_rotation_lanes.
+template <typename L>
+struct LaneResults {
+  typename L::V iterations;    // Cayley steps taken (as floating values)
+  typename L::Mask fallback;   // solved by the Horn/Jacobi fallback
+  typename L::Mask bad_init;   // the warm start was finite but not a rotation
+  typename L::Mask non_finite; // M or init held NaN/Inf
 };
 
-// Algorithm 1's loop: up to `cap` Cayley steps R <- R Q(z), stopping when a
-// step is below the convergence tolerance or H is singular (no step taken).
-template <typename T>
-inline IterationEnd<T> run_cayley_steps(const Mat3<T>& A, int64_t cap, Variant variant,
-                                        bool switch_to_newton, Mat3<T>& R, FitResult& result) {
-  using Tol = Tolerances<T>;
-  IterationEnd<T> end;
-  for (int64_t it = 0; it < cap; ++it) {
-    end.last_S = transpose_times(R, A);
-    const CayleyStep<T> step = cayley_step(end.last_S, variant);
-    if (!std::isfinite(step.zz)) break;
-    R = times(R, cayley_rotation(step));
-    ++result.iterations;
-    if (switch_to_newton && step.zz < Tol::newton_switch) variant = Variant::kNewton;
-    if (step.zz < Tol::converged) {
-      end.converged = true;
-      break;
+template <typename L>
+struct IterationEnd {
+  typename L::Mask converged;
+  Mat3<typename L::V> last_S;  // S = R^T A of each lane's last step
+};
+
+// Algorithm 1's loop: up to `cap` Cayley steps R <- R Q(z) on the `active`
+// lanes. A lane stops when its step is below the convergence tolerance or its
+// H is singular (then no step is taken).
+template <typename L>
+inline IterationEnd<L> run_cayley_steps(const Mat3<typename L::V>& A, int64_t cap, Variant variant,
+                                        bool switch_to_newton, typename L::Mask active,
+                                        Mat3<typename L::V>& R, typename L::V& iterations) {
+  using V = typename L::V;
+  using Mask = typename L::Mask;
+  using Tol = Tolerances<typename L::Scalar>;
+  IterationEnd<L> end;
+  end.converged = L::all_false();
+  for (int k = 0; k < 9; ++k) end.last_S.a[k] = V(0);
+  Mask done = L::mask_not(active);
+  Mask newton = L::all_false();
+  for (int64_t it = 0; it < cap && !L::all(done); ++it) {
+    const Mat3<V> S = transpose_times(R, A);
+    V c = objective_estimate<L>(S, variant);
+    if (switch_to_newton && variant != Variant::kNewton) c = L::select(newton, trace(S), c);
+    const CayleyStep<V> step = cayley_step(S, c);
+    const Mask finite = L::is_finite(step.zz);
+    const Mask stepping = L::mask_and(L::mask_not(done), finite);
+    done = L::mask_or(done, L::mask_not(finite));
+    R = select<L>(stepping, times(R, cayley_rotation(step)), R);
+    end.last_S = select<L>(stepping, S, end.last_S);
+    iterations = iterations + L::select(stepping, V(1), V(0));
+    if (switch_to_newton) {
+      newton = L::mask_or(newton, L::mask_and(stepping, L::lt(step.zz, V(Tol::newton_switch))));
     }
+    const Mask now_converged = L::mask_and(stepping, L::lt(step.zz, V(Tol::converged)));
+    end.converged = L::mask_or(end.converged, now_converged);
+    done = L::mask_or(done, now_converged);
   }
   return end;
 }
 
-// Fits the rotation maximising tr(R^T M) for one matrix. `init` may be null.
-template <typename T>
-inline FitResult fit_rotation_one(const Mat3<T>& M, const Mat3<T>* init,
-                                  const FitOptions& options, Mat3<T>& R) {
+// Fits R maximising tr(R^T M) for each lane. `init` may be null.
+template <typename L>
+inline LaneResults<L> fit_rotation_lanes(const Mat3<typename L::V>& M, const Mat3<typename L::V>* init,
+                                         const FitOptions& options, Mat3<typename L::V>& R) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  using Mask = typename L::Mask;
   using Tol = Tolerances<T>;
-  FitResult result;
-  const T max_abs = max_abs_entry(M);
-  if (!std::isfinite(max_abs) || (init != nullptr && !all_finite(*init))) {
-    R = nan_matrix<T>();
-    result.status = FitStatus::kNonFinite;
-    return result;
-  }
-  if (init != nullptr && !is_rotation(*init, Tol::init_orthonormality)) {
-    R = nan_matrix<T>();
-    result.status = FitStatus::kBadInit;
-    return result;
-  }
-  if (max_abs == T(0)) {
-    // Every rotation attains the maximum 0: keep the warm start, else I.
-    R = init != nullptr ? reorthonormalize(*init) : identity3<T>();
-    return result;
-  }
-  const Mat3<T> A = normalized(M, max_abs);
-  const bool converge = options.max_iter <= 0;
-  R = init != nullptr ? reorthonormalize(*init)
-                      : start_candidate_rotation<T>(best_start_candidate(A));
+  LaneResults<L> res;
+  res.iterations = V(0);
+  res.fallback = L::all_false();
+  res.bad_init = L::all_false();
 
-  if (!converge) {
-    run_cayley_steps(A, options.max_iter, options.variant, /*switch_to_newton=*/false, R, result);
-    return result;
+  Mask finite = L::all_true();
+  V max_abs(0);
+  for (int k = 0; k < 9; ++k) {
+    finite = L::mask_and(finite, L::is_finite(M.a[k]));
+    max_abs = L::max(max_abs, L::abs(M.a[k]));
+    if (init != nullptr) finite = L::mask_and(finite, L::is_finite(init->a[k]));
   }
-  // Converged mode. A fixed point that fails the second-order check is a
-  // saddle: escape it by a half-turn (saddle_escape.h) and iterate again, at
-  // most Tolerances::max_escapes times; whatever has not reached a verified maximum by
-  // then goes to the fallback.
-  for (int attempt = 0; attempt <= Tol::max_escapes; ++attempt) {
-    const IterationEnd<T> end =
-        run_cayley_steps(A, Tol::converged_cap, options.variant, /*switch_to_newton=*/true, R, result);
-    if (end.converged && is_maximum(end.last_S, Tol::max_check_slack)) {
-      // Products of Cayley factors accumulate rounding; one Newton-Schulz
-      // step brings R back to orthonormal at the dtype's precision.
-      R = reorthonormalize(R);
-      return result;
+  res.non_finite = L::mask_not(finite);
+
+  // Scale to max |entry| = 1: the maximiser is unchanged and no product in a
+  // step can over- or underflow. 1 / subnormal may overflow, so those lanes
+  // are first lifted by 2^digits (exact). M = 0 stays 0.
+  const V lift = L::select(L::lt(max_abs, V(std::numeric_limits<T>::min())),
+                           V(std::ldexp(T(1), std::numeric_limits<T>::digits)), V(1));
+  const Mask zero = L::eq(max_abs, V(0));
+  const V inv = L::select(zero, V(0), V(1) / (max_abs * lift));
+  Mat3<V> A;
+  for (int k = 0; k < 9; ++k) A.a[k] = (M.a[k] * lift) * inv;
+
+  // M = 0: every rotation is optimal; such lanes keep the start (init or I).
+  Mask active = L::mask_and(finite, L::mask_not(zero));
+  if (init != nullptr) {
+    res.bad_init = L::mask_and(finite, L::mask_not(is_rotation<L>(*init, Tol::init_orthonormality)));
+    active = L::mask_and(active, L::mask_not(res.bad_init));
+    // Warm starts fed back call after call would drift from orthonormal.
+    R = reorthonormalize(*init);
+  } else {
+    R = best_start_rotation<L>(A);
+  }
+
+  if (options.max_iter > 0) {
+    run_cayley_steps<L>(A, options.max_iter, options.variant, /*switch_to_newton=*/false, active, R,
+                        res.iterations);
+  } else {
+    Mask accepted = L::all_false();
+    Mask pending = active;
+    for (int attempt = 0; attempt <= Tol::max_escapes && L::any(pending); ++attempt) {
+      const IterationEnd<L> end = run_cayley_steps<L>(A, Tol::converged_cap, options.variant,
+                                                      /*switch_to_newton=*/true, pending, R, res.iterations);
+      const Mask at_maximum = L::mask_and(end.converged, is_maximum<L>(end.last_S, Tol::max_check_slack));
+      accepted = L::mask_or(accepted, at_maximum);
+      // Converged to a saddle: escape by a half-turn and iterate again.
+      pending = L::mask_and(end.converged, L::mask_not(at_maximum));
+      if (attempt < Tol::max_escapes && L::any(pending)) {
+        R = select<L>(pending, times(R, saddle_escape_rotation<L>(transpose_times(R, A))), R);
+      }
     }
-    if (!end.converged) break;
-    R = times(R, saddle_escape_rotation(transpose_times(R, A)));
+    // Products of Cayley factors accumulate rounding; one Newton-Schulz step
+    // brings R back to orthonormal at the dtype's precision.
+    R = select<L>(accepted, reorthonormalize(R), R);
+    res.fallback = L::mask_and(active, L::mask_not(accepted));
+    if (L::any(res.fallback)) {
+      for (int i = 0; i < L::width; ++i) {
+        if (L::lane_set(res.fallback, i)) insert_lane<L>(R, i, horn_rotation(extract_lane<L>(A, i)));
+      }
+    }
   }
-  R = horn_rotation(A);
-  result.status = FitStatus::kFallback;
-  return result;
+  const Mask nan_lanes = L::mask_or(res.non_finite, res.bad_init);
+  if (L::any(nan_lanes)) {
+    const V nan(std::numeric_limits<T>::quiet_NaN());
+    for (int k = 0; k < 9; ++k) R.a[k] = L::select(nan_lanes, nan, R.a[k]);
+  }
+  return res;
 }
 
+}  // namespace
 }  // namespace CPU_CAPABILITY
 }  // namespace kernel
 }  // namespace torchrot

@@ -16,6 +16,7 @@
 namespace torchrot {
 namespace kernel {
 inline namespace CPU_CAPABILITY {
+namespace {
 
 constexpr int kJacobiMaxSweeps = 30;
 
@@ -84,6 +85,7 @@ inline Mat3<T> horn_rotation(const Mat3<T>& M) {
   return out;
 }
 
+}  // namespace
 }  // namespace CPU_CAPABILITY
 }  // namespace kernel
 }  // namespace torchrot

@@ -11,6 +11,7 @@
 namespace torchrot {
 namespace kernel {
 inline namespace CPU_CAPABILITY {
+namespace {
 
 template <typename V>
 struct Mat3 {
@@ -60,6 +61,7 @@ inline Mat3<V> reorthonormalize(const Mat3<V>& R) {
   return times(R, G);
 }
 
+}  // namespace
 }  // namespace CPU_CAPABILITY
 }  // namespace kernel
 }  // namespace torchrot

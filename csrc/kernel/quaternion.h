@@ -10,6 +10,7 @@
 namespace torchrot {
 namespace kernel {
 inline namespace CPU_CAPABILITY {
+namespace {
 
 // Rotation matrix of the unit quaternion (w, x, y, z), column-vector convention.
 template <typename V>
@@ -42,6 +43,7 @@ inline void horn_matrix(const Mat3<V>& M, V K[16]) {
   }
 }
 
+}  // namespace
 }  // namespace CPU_CAPABILITY
 }  // namespace kernel
 }  // namespace torchrot

@@ -1,0 +1,104 @@
+// Run-time choice of the kernel object (instruction set), and the call into it.
+//
+// The hardware level comes from ATen (at::get_cpu_capability(), which reads
+// the CPU's features and honours ATEN_CPU_CAPABILITY). The environment
+// variable TORCHROT_CPU_CAPABILITY = scalar | default | avx2 | avx512 can only
+// lower it: a request above what the CPU supports is capped, so no setting
+// can make torchrot execute instructions the CPU lacks.
+#include <ATen/Dispatch.h>
+#include <ATen/Version.h>
+#include <c10/util/Exception.h>
+
+#include <algorithm>
+#include <cstdlib>
+#include <cstring>
+#include <string>
+
+#include "../fit_rotation.h"
+#include "kernel_table.h"
+
+namespace torchrot {
+namespace {
+
+enum class Isa : int { kScalar = 0, kDefault = 1, kAvx2 = 2, kAvx512 = 3 };
+
+constexpr const char* kIsaNames[] = {"scalar", "default", "avx2", "avx512"};
+
+Isa hardware_isa() {
+  static const Isa isa = [] {
+    const std::string cap = at::get_cpu_capability();
+    if (cap == "AVX512") return Isa::kAvx512;
+    if (cap == "AVX2") return Isa::kAvx2;
+    return Isa::kDefault;
+  }();
+  return isa;
+}
+
+Isa parse_isa(const char* text) {
+  for (int i = 0; i < 4; ++i) {
+    if (strcasecmp(text, kIsaNames[i]) == 0) return static_cast<Isa>(i);
+  }
+  TORCH_CHECK(false, "TORCHROT_CPU_CAPABILITY must be one of scalar, default, avx2, avx512; got '", text,
+              "'");
+}
+
+// Read on every call (it is cheap) so tests can switch kernels in-process.
+Isa selected_isa() {
+  const char* requested = std::getenv("TORCHROT_CPU_CAPABILITY");
+  if (requested == nullptr || requested[0] == '\0') return hardware_isa();
+  return std::min(parse_isa(requested), hardware_isa());
+}
+
+const cpu::KernelTable& kernels(Isa isa) {
+  switch (isa) {
+    case Isa::kAvx512:
+      return cpu::avx512_kernels();
+    case Isa::kAvx2:
+      return cpu::avx2_kernels();
+    case Isa::kDefault:
+      return cpu::default_kernels();
+    case Isa::kScalar:
+      break;
+  }
+  return cpu::scalar_kernels();
+}
+
+template <typename T>
+void fill_matrix_view(const at::Tensor& t, const T*& data, int64_t stride[3]) {
+  data = t.data_ptr<T>();
+  for (int d = 0; d < 3; ++d) stride[d] = t.stride(d);
+}
+
+int64_t run_kernel(const cpu::KernelTable& table, const cpu::BatchArgs<float>& args) {
+  return table.fit_float(args);
+}
+
+int64_t run_kernel(const cpu::KernelTable& table, const cpu::BatchArgs<double>& args) {
+  return table.fit_double(args);
+}
+
+}  // namespace
+
+std::string cpu_kernel_name() { return kernels(selected_isa()).name; }
+
+int64_t fit_rotation_cpu(const at::Tensor& M, const at::Tensor* init, const at::Tensor& out,
+                         const FitOptions& options, const at::Tensor* iterations, const at::Tensor* status) {
+  const cpu::KernelTable& table = kernels(selected_isa());
+  int64_t bad_inits = 0;
+  AT_DISPATCH_FLOATING_TYPES(M.scalar_type(), "torchrot_fit_rotation_cpu", [&] {
+    cpu::BatchArgs<scalar_t> args{};
+    fill_matrix_view(M, args.M, args.m_stride);
+    if (init != nullptr) fill_matrix_view(*init, args.init, args.init_stride);
+    const scalar_t* out_data = nullptr;
+    fill_matrix_view(out, out_data, args.out_stride);
+    args.out = out.data_ptr<scalar_t>();
+    args.n = M.size(0);
+    args.options = options;
+    args.iterations = iterations != nullptr ? iterations->data_ptr<int32_t>() : nullptr;
+    args.status = status != nullptr ? status->data_ptr<uint8_t>() : nullptr;
+    bad_inits = run_kernel(table, args);
+  });
+  return bad_inits;
+}
+
+}  // namespace torchrot

@@ -1,0 +1,15 @@
+// Kernel object: AVX2 + FMA: 8 float / 4 double matrices per block.
+// Built with its own flags and CPU_CAPABILITY (setup.py); everything it
+// defines lives in an anonymous namespace except the table getter below.
+#include "fit_rotation_kernel.h"
+
+namespace torchrot {
+namespace cpu {
+
+const KernelTable& avx2_kernels() {
+  static const KernelTable table = make_kernel_table<kernel::VectorLanes>("avx2");
+  return table;
+}
+
+}  // namespace cpu
+}  // namespace torchrot

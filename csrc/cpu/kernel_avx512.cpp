@@ -1,0 +1,15 @@
+// Kernel object: AVX-512 (F, BW, VL, DQ): 16 float / 8 double matrices per block.
+// Built with its own flags and CPU_CAPABILITY (setup.py); everything it
+// defines lives in an anonymous namespace except the table getter below.
+#include "fit_rotation_kernel.h"
+
+namespace torchrot {
+namespace cpu {
+
+const KernelTable& avx512_kernels() {
+  static const KernelTable table = make_kernel_table<kernel::VectorLanes>("avx512");
+  return table;
+}
+
+}  // namespace cpu
+}  // namespace torchrot

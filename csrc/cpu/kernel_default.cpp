@@ -1,0 +1,15 @@
+// Kernel object: the portable baseline: at::vec::Vectorized's generic implementation, no instruction-set flags.
+// Built with its own flags and CPU_CAPABILITY (setup.py); everything it
+// defines lives in an anonymous namespace except the table getter below.
+#include "fit_rotation_kernel.h"
+
+namespace torchrot {
+namespace cpu {
+
+const KernelTable& default_kernels() {
+  static const KernelTable table = make_kernel_table<kernel::VectorLanes>("default");
+  return table;
+}
+
+}  // namespace cpu
+}  // namespace torchrot

@@ -1,0 +1,44 @@
+// The contract between the ISA dispatch (dispatch.cpp) and the per-ISA kernel
+// objects (kernel_*.cpp). Nothing here depends on the instruction set.
+#pragma once
+
+#include <cstdint>
+
+#include "../fit_rotation.h"
+
+namespace torchrot {
+namespace cpu {
+
+// N matrices of 3x3 with arbitrary element strides (in elements).
+template <typename T>
+struct BatchArgs {
+  const T* M;
+  int64_t m_stride[3];
+  const T* init;  // null: cold start
+  int64_t init_stride[3];
+  T* out;  // may alias M or init exactly
+  int64_t out_stride[3];
+  int64_t n;
+  FitOptions options;
+  int32_t* iterations;  // optional, n entries
+  uint8_t* status;      // optional, n entries (FitStatus)
+};
+
+struct KernelTable {
+  const char* name;
+  int width_float;   // matrices per SIMD block
+  int width_double;
+  // Each returns the number of matrices whose warm start was not a rotation.
+  int64_t (*fit_float)(const BatchArgs<float>&);
+  int64_t (*fit_double)(const BatchArgs<double>&);
+};
+
+// One per kernel object; the SIMD ones must only be called on CPUs that
+// support their instruction set.
+const KernelTable& scalar_kernels();
+const KernelTable& default_kernels();
+const KernelTable& avx2_kernels();
+const KernelTable& avx512_kernels();
+
+}  // namespace cpu
+}  // namespace torchrot

@@ -1,0 +1,75 @@
+"""Shared fixtures for the torchrot tests.
+
+Test data always comes from ``torchrot.testing`` (the distributions, edge cases
+and metrics shared with the benchmarks); this file only holds the parameter
+lists and small helpers that several test modules use.
+"""
+from __future__ import annotations
+
+import functools
+
+import pytest
+import torch
+
+import torchrot  # noqa: F401  (registers torch.ops.torchrot.*)
+from torchrot.testing import CRITERIA, make_matrices, rotation_errors
+
+DTYPES = (torch.float32, torch.float64)
+VARIANTS = ("newton", "conservative", "gershgorin")
+
+
+def dtype_id(dtype: torch.dtype) -> str:
+    return str(dtype).removeprefix("torch.")
+
+
+@pytest.fixture(params=DTYPES, ids=dtype_id)
+def dtype(request) -> torch.dtype:
+    """The two compute dtypes of the kernel."""
+    return request.param
+
+
+@pytest.fixture(params=VARIANTS)
+def variant(request) -> str:
+    """The three Cayley-step variants."""
+    return request.param
+
+
+@functools.lru_cache(maxsize=None)
+def _cached_matrices(name: str, n: int, seed: int, dtype: torch.dtype) -> torch.Tensor:
+    return make_matrices(name, n, seed, dtype)
+
+
+@pytest.fixture(scope="session")
+def matrices():
+    """``matrices(name, n, seed=0, dtype=float64)``: ``make_matrices`` with a
+    session cache (tests must not modify the returned tensor in place)."""
+
+    def get(name: str, n: int, seed: int = 0, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        return _cached_matrices(name, n, seed, dtype)
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def assert_meets_criteria():
+    """``assert_meets_criteria(R, M, dtype, what="")``: every matrix of R meets
+    ``CRITERIA[dtype]`` (orthonormality, det, shortfall) for M; the message
+    names the worst matrix of each failing metric."""
+
+    def check(R: torch.Tensor, M: torch.Tensor, dtype: torch.dtype, what: str = "") -> dict:
+        assert torch.isfinite(R).all(), f"{what}: non-finite result"
+        errors = rotation_errors(R, M)
+        failures = []
+        for metric, limit in CRITERIA[dtype].items():
+            err = errors[metric].flatten()
+            if err.numel() and not bool((err <= limit).all()):
+                worst = int(err.argmax())
+                failures.append(
+                    f"{metric}: max {err[worst].item():.3g} > {limit:g} at matrix {worst} "
+                    f"({int((err > limit).sum())} of {err.numel()} fail); "
+                    f"M={M.reshape(-1, 3, 3)[worst].tolist()}"
+                )
+        assert not failures, f"{what}: " + "; ".join(failures)
+        return errors
+
+    return check

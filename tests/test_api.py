@@ -1,0 +1,374 @@
+"""API contract of torchrot.fit_rotation: shapes, broadcasting, strides, out=,
+reduced precision, thread-count determinism and argument errors."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchrot
+from torchrot.testing import make_matrices, random_rotations, rotation_svd
+
+op = torch.ops.torchrot
+
+
+def _gaussian(shape, seed=0, dtype=torch.float64) -> torch.Tensor:
+    n = math.prod(shape)
+    return make_matrices("gaussian", n, seed, dtype).reshape(*shape, 3, 3)
+
+
+def _rotations(shape, seed=0, dtype=torch.float64, max_angle=math.pi) -> torch.Tensor:
+    n = math.prod(shape)
+    return random_rotations(n, torch.Generator().manual_seed(seed), max_angle).to(dtype).reshape(*shape, 3, 3)
+
+
+# ---------------------------------------------------------------------------
+# Batch shapes
+# ---------------------------------------------------------------------------
+
+BATCH_SHAPES = [(), (1,), (7,), (2, 3, 4), (0,), (2, 0), (0, 5, 1)]
+
+
+@pytest.mark.parametrize("batch", BATCH_SHAPES, ids=str)
+@pytest.mark.parametrize("max_iter", [None, 2])
+def test_batch_shapes(batch, dtype, max_iter):
+    M = _gaussian(batch, 1, dtype)
+    R = torchrot.fit_rotation(M, max_iter=max_iter)
+    assert R.shape == M.shape and R.dtype == dtype and R.is_contiguous()
+    flat = torchrot.fit_rotation(M.reshape(-1, 3, 3), max_iter=max_iter)
+    assert torch.equal(R.reshape(-1, 3, 3), flat)
+    info = torchrot.fit_rotation_info(M, max_iter=max_iter)
+    assert isinstance(info, torchrot.FitInfo)
+    assert torch.equal(info.R, R)
+    assert info.iterations.shape == batch and info.iterations.dtype == torch.int32
+    assert info.status.shape == batch and info.status.dtype == torch.uint8
+    # with a warm start of the same batch shape
+    init = _rotations(batch, 2, dtype)
+    Ri = torchrot.fit_rotation(M, init, max_iter=max_iter)
+    assert Ri.shape == M.shape
+    assert torch.equal(Ri.reshape(-1, 3, 3), torchrot.fit_rotation(M.reshape(-1, 3, 3), init.reshape(-1, 3, 3), max_iter=max_iter))
+
+
+def test_single_matrix_matches_batched(dtype):
+    M = _gaussian((9,), 3, dtype)
+    R = torchrot.fit_rotation(M)
+    for i in range(9):
+        assert torch.equal(torchrot.fit_rotation(M[i]), R[i])
+
+
+@pytest.mark.parametrize(
+    "m_batch, init_batch",
+    [((5,), ()), ((2, 4), (1, 4)), ((2, 4), (4,)), ((2, 4), (2, 1)), ((3, 1, 2), (2,)), ((0,), ()), ((0, 3), (3,))],
+    ids=str,
+)
+@pytest.mark.parametrize("max_iter", [None, 1])
+def test_init_broadcasting(m_batch, init_batch, dtype, max_iter):
+    M = _gaussian(m_batch, 4, dtype)
+    init = _rotations(init_batch, 5, dtype)
+    R = torchrot.fit_rotation(M, init, max_iter=max_iter)
+    expected = torchrot.fit_rotation(M, init.expand(M.shape).contiguous(), max_iter=max_iter)
+    assert R.shape == M.shape
+    assert torch.equal(R, expected)
+
+
+# ---------------------------------------------------------------------------
+# Strides
+# ---------------------------------------------------------------------------
+
+
+def _non_contiguous_inputs(dtype):
+    base = make_matrices("rot60", 120, 6, dtype)
+    padded = torch.zeros(60, 5, 5, dtype=dtype)
+    padded[:, ::2, ::2] = base[:60]
+    return {
+        "transposed_strides": base[:60].mT.contiguous().mT,  # same values, column-major
+        "transposed": base[:60].mT,
+        "batch_step": base[::2],
+        "expanded_batch": base[:1].expand(40, 3, 3),
+        "expanded_rows": base[:30, :1, :].expand(30, 3, 3),
+        "permuted_batch": base.reshape(6, 20, 3, 3).transpose(0, 1),
+        "inner_step": padded[:, ::2, ::2],
+        "column_major_batch": base.permute(1, 2, 0).contiguous().permute(2, 0, 1),
+        # overlapping matrices: matrix i + 1 starts at row 1 of matrix i
+        "overlapping_batch": torch.as_strided(base, (100, 3, 3), (3, 3, 1)),
+    }
+
+
+NON_CONTIGUOUS_KINDS = [
+    "transposed_strides", "transposed", "batch_step", "expanded_batch", "expanded_rows",
+    "permuted_batch", "inner_step", "column_major_batch", "overlapping_batch",
+]
+
+
+@pytest.mark.parametrize("kind", NON_CONTIGUOUS_KINDS)
+@pytest.mark.parametrize("max_iter", [None, 1])
+def test_non_contiguous_M(kind, dtype, max_iter):
+    M = _non_contiguous_inputs(dtype)[kind]
+    assert not M.is_contiguous()
+    init = None
+    if max_iter is not None:
+        init = rotation_svd(M.double()).to(dtype) @ _rotations(M.shape[:-2], 8, dtype, math.radians(10))
+    R = torchrot.fit_rotation(M, init, max_iter=max_iter)
+    expected = torchrot.fit_rotation(M.contiguous(), init, max_iter=max_iter)
+    assert R.is_contiguous()
+    assert torch.equal(R, expected)
+
+
+def test_non_contiguous_init(dtype):
+    M = make_matrices("rot60", 50, 9, dtype)
+    R0 = rotation_svd(M.double()).to(dtype)
+    for init in (R0.mT.contiguous().mT, R0.repeat(2, 1, 1)[::2], R0.permute(1, 2, 0).contiguous().permute(2, 0, 1)):
+        assert not init.is_contiguous()
+        for max_iter in (None, 1):
+            assert torch.equal(
+                torchrot.fit_rotation(M, init, max_iter=max_iter),
+                torchrot.fit_rotation(M, init.contiguous(), max_iter=max_iter),
+            )
+
+
+# ---------------------------------------------------------------------------
+# out=
+# ---------------------------------------------------------------------------
+
+
+def _outs(shape, dtype):
+    n = shape[0]
+    return {
+        "contiguous": torch.empty(shape, dtype=dtype),
+        "permuted": torch.empty(3, 3, n, dtype=dtype).permute(2, 0, 1),
+        "transposed": torch.empty(shape, dtype=dtype).mT,
+        "batch_step": torch.empty(2 * n, 3, 3, dtype=dtype)[::2],
+        "inner_step": torch.empty(n, 6, 6, dtype=dtype)[:, ::2, ::2],
+    }
+
+
+@pytest.mark.parametrize("kind", ["contiguous", "permuted", "transposed", "batch_step", "inner_step"])
+@pytest.mark.parametrize("out_dtype", [torch.float32, torch.float64, torch.float16, torch.bfloat16], ids=str)
+def test_out(kind, out_dtype):
+    M = make_matrices("gaussian", 50, 10, torch.float64).to(out_dtype)
+    expected = torchrot.fit_rotation(M)
+    out = _outs(M.shape, out_dtype)[kind]
+    out.fill_(123.0)
+    returned = torchrot.fit_rotation(M, out=out)
+    assert returned is out
+    assert torch.equal(out, expected)
+    # and through the operator directly
+    out2 = _outs(M.shape, out_dtype)[kind]
+    assert op.fit_rotation_out(M, None, None, "conservative", out2) is None
+    assert torch.equal(out2, expected)
+
+
+def test_out_leaves_neighbouring_memory_alone(dtype):
+    M = make_matrices("gaussian", 20, 11, dtype)
+    storage = torch.full((2 * 20, 3, 3), 7.0, dtype=dtype)
+    torchrot.fit_rotation(M, out=storage[1::2])
+    assert (storage[::2] == 7.0).all()
+    assert torch.equal(storage[1::2], torchrot.fit_rotation(M))
+
+
+@pytest.mark.parametrize("max_iter", [1, 3, None])
+def test_out_aliases_init(dtype, variant, max_iter):
+    """In-place warm-start update: fit_rotation(M, init=R, out=R)."""
+    M = make_matrices("warm", 500, 12, dtype)
+    init = (rotation_svd(M.double()) @ _rotations((500,), 13, torch.float64, math.radians(20))).to(dtype)
+    expected = torchrot.fit_rotation(M, init, max_iter=max_iter, variant=variant)
+    R = init.clone()
+    returned = torchrot.fit_rotation(M, init=R, max_iter=max_iter, variant=variant, out=R)
+    assert returned is R
+    assert torch.equal(R, expected)
+    # non-contiguous R updated in place
+    Rt = init.mT.contiguous().mT
+    torchrot.fit_rotation(M, init=Rt, max_iter=max_iter, variant=variant, out=Rt)
+    assert torch.equal(Rt, expected)
+
+
+def test_out_aliases_M(dtype):
+    M = make_matrices("gaussian", 300, 14, dtype)
+    expected = torchrot.fit_rotation(M)
+    Mc = M.clone()
+    assert torchrot.fit_rotation(Mc, out=Mc) is Mc
+    assert torch.equal(Mc, expected)
+    # with a warm start as well
+    init = _rotations((300,), 15, dtype)
+    expected = torchrot.fit_rotation(M, init, max_iter=2)
+    Mc = M.clone()
+    torchrot.fit_rotation(Mc, init, max_iter=2, out=Mc)
+    assert torch.equal(Mc, expected)
+
+
+def test_out_aliases_M_reduced_precision():
+    M = make_matrices("gaussian", 100, 16, torch.float64).half()
+    expected = torchrot.fit_rotation(M)
+    Mc = M.clone()
+    torchrot.fit_rotation(Mc, out=Mc)
+    assert torch.equal(Mc, expected)
+
+
+def test_out_partial_overlap_rejected(dtype):
+    buf = make_matrices("gaussian", 6, 17, dtype)
+    with pytest.raises(RuntimeError, match="overlap|memory location"):
+        torchrot.fit_rotation(buf[:5], out=buf[1:])
+    init = _rotations((6,), 18, dtype)
+    M = make_matrices("gaussian", 5, 19, dtype)
+    with pytest.raises(RuntimeError, match="overlap|memory location"):
+        torchrot.fit_rotation(M, init[:5], max_iter=1, out=init[1:])
+
+
+# ---------------------------------------------------------------------------
+# Reduced precision
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("low", [torch.float16, torch.bfloat16], ids=str)
+@pytest.mark.parametrize("max_iter", [None, 1])
+def test_reduced_precision(low, variant, max_iter):
+    M64 = make_matrices("rot60", 2000, 20, torch.float64)
+    M = M64.to(low)
+    R = torchrot.fit_rotation(M, max_iter=max_iter, variant=variant)
+    assert R.dtype == low and R.shape == M.shape
+    # computed in float32 and rounded once
+    assert torch.equal(R, torchrot.fit_rotation(M.float(), max_iter=max_iter, variant=variant).to(low))
+    if max_iter is None:
+        # close to the float32 fit of the unrounded data: the input rounding
+        # (eps of the dtype, amplified <= ~10x on rot60 data) dominates
+        R32 = torchrot.fit_rotation(M64.float(), variant=variant)
+        assert (R.float() - R32).abs().max().item() <= 10 * torch.finfo(low).eps
+        info = torchrot.fit_rotation_info(M, variant=variant)
+        assert info.R.dtype == low and torch.equal(info.R, R)
+
+
+# ---------------------------------------------------------------------------
+# Determinism across thread counts
+# ---------------------------------------------------------------------------
+
+
+@pytest.fixture
+def restore_threads():
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.mark.parametrize("name", ["gaussian", "warm"])
+def test_thread_count_does_not_change_bits(name, dtype, restore_threads):
+    n = 100_000
+    M = make_matrices(name, n, 21, dtype)
+    init = _rotations((n,), 22, dtype, math.radians(30))
+    results = []
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        results.append(
+            (torchrot.fit_rotation_info(M), torchrot.fit_rotation(M, init, max_iter=1, variant="gershgorin"))
+        )
+    (info1, warm1), (info2, warm2) = results
+    assert all(torch.equal(a, b) for a, b in zip(info1, info2))
+    assert torch.equal(warm1, warm2)
+
+
+# ---------------------------------------------------------------------------
+# Argument errors
+# ---------------------------------------------------------------------------
+
+M5 = torch.randn(5, 3, 3, generator=torch.Generator().manual_seed(0))
+ROT5 = rotation_svd(M5.double()).float()
+REFLECT_ONE = ROT5.clone()
+REFLECT_ONE[3] = torch.diag(torch.tensor([1.0, 1.0, -1.0]))
+
+# id -> (M, init, max_iter, variant, regex the message must match)
+ERROR_CASES = {
+    "M_shape_3x4": (torch.randn(5, 3, 4), None, None, "conservative", r"\bM\b.*shape"),
+    "M_shape_4x3": (torch.randn(4, 3), None, None, "conservative", r"\bM\b.*shape"),
+    "M_shape_1d": (torch.randn(9), None, None, "conservative", r"\bM\b.*shape"),
+    "M_shape_0d": (torch.tensor(1.0), None, None, "conservative", r"\bM\b.*shape"),
+    "M_int": (torch.ones(5, 3, 3, dtype=torch.int32), None, None, "conservative", r"\bM\b.*float"),
+    "M_long": (torch.ones(5, 3, 3, dtype=torch.int64), None, None, "conservative", r"\bM\b.*float"),
+    "M_bool": (torch.ones(5, 3, 3, dtype=torch.bool), None, None, "conservative", r"\bM\b.*float"),
+    "M_complex": (torch.ones(5, 3, 3, dtype=torch.complex64), None, None, "conservative", r"\bM\b.*float"),
+    "init_dtype": (M5, ROT5.double(), None, "conservative", r"\binit\b.*dtype"),
+    "init_shape": (M5, torch.eye(2), None, "conservative", r"\binit\b.*shape"),
+    "init_not_broadcastable": (M5, ROT5[:4], None, "conservative", r"\binit\b"),
+    "init_not_broadcastable_inner": (M5.expand(2, 5, 3, 3), ROT5[:2], None, "conservative", r"\binit\b"),
+    "init_more_dims": (M5, ROT5[None, None], None, "conservative", r"\binit\b.*broadcast"),
+    "init_device": (M5, torch.empty(5, 3, 3, device="meta"), None, "conservative", r"\binit\b.*device"),
+    "M_device": (M5.to("meta"), ROT5, None, "conservative", r"\binit\b.*device"),
+    "init_zeros": (M5, torch.zeros(5, 3, 3), None, "conservative", r"\binit\b.*rotation"),
+    "init_zeros_max_iter": (M5, torch.zeros(3, 3), 1, "newton", r"\binit\b.*rotation"),
+    "init_one_reflection": (M5, REFLECT_ONE, 1, "conservative", r"\binit\b.*rotation.*1 of 5"),
+    "init_scaled": (M5, 2 * ROT5, None, "conservative", r"\binit\b.*rotation"),
+    "variant": (M5, None, None, "cayley", r"variant.*'newton', 'conservative', 'gershgorin'"),
+    "variant_case": (M5, None, None, "Newton", r"variant"),
+    "max_iter_0": (M5, None, 0, "conservative", r"max_iter.*>= 1"),
+    "max_iter_negative": (M5, None, -1, "conservative", r"max_iter.*>= 1"),
+    "max_iter_float": (M5, None, 1.5, "conservative", r"max_iter"),
+}
+
+CALLERS = {
+    "fit_rotation": lambda M, init, k, v: torchrot.fit_rotation(M, init, max_iter=k, variant=v),
+    "fit_rotation_info": lambda M, init, k, v: torchrot.fit_rotation_info(M, init, max_iter=k, variant=v),
+    "op": lambda M, init, k, v: op.fit_rotation(M, init, k, v),
+    "op_info": lambda M, init, k, v: op.fit_rotation_info(M, init, k, v),
+    "op_out": lambda M, init, k, v: op.fit_rotation_out(M, init, k, v, torch.empty_like(M)),
+}
+
+
+@pytest.mark.parametrize("caller", sorted(CALLERS))
+@pytest.mark.parametrize("case", sorted(ERROR_CASES))
+def test_argument_errors(case, caller):
+    M, init, max_iter, variant, match = ERROR_CASES[case]
+    with pytest.raises((RuntimeError, ValueError, TypeError), match=match):
+        CALLERS[caller](M, init, max_iter, variant)
+
+
+@pytest.mark.parametrize("case", sorted(ERROR_CASES))
+def test_argument_errors_reference(case):
+    """The pure-PyTorch implementation rejects the same arguments, with
+    Python's exception types."""
+    M, init, max_iter, variant, match = ERROR_CASES[case]
+    with pytest.raises((ValueError, TypeError), match=match):
+        torchrot.fit_rotation_reference(M, init, max_iter=max_iter, variant=variant)
+
+
+OUT_CASES = {
+    "shape": (lambda: torch.empty(4, 3, 3), r"\bout\b.*shape"),
+    "shape_unbatched": (lambda: torch.empty(3, 3), r"\bout\b.*shape"),
+    "dtype": (lambda: torch.empty(5, 3, 3, dtype=torch.float64), r"\bout\b.*dtype"),
+    "dtype_half": (lambda: torch.empty(5, 3, 3, dtype=torch.float16), r"\bout\b.*dtype"),
+    "expanded": (lambda: torch.empty(1, 3, 3).expand(5, 3, 3), r"\bout\b.*overlap"),
+    "expanded_rows": (lambda: torch.empty(5, 1, 3).expand(5, 3, 3), r"\bout\b.*overlap"),
+    "device": (lambda: torch.empty(5, 3, 3, device="meta"), r"\bout\b.*device"),
+}
+
+
+@pytest.mark.parametrize("via", ["fit_rotation", "op"])
+@pytest.mark.parametrize("case", sorted(OUT_CASES))
+def test_out_errors(case, via):
+    make_out, match = OUT_CASES[case]
+    out = make_out()
+    with pytest.raises((RuntimeError, ValueError, TypeError), match=match):
+        if via == "fit_rotation":
+            torchrot.fit_rotation(M5, out=out)
+        else:
+            op.fit_rotation_out(M5, None, None, "conservative", out)
+
+
+def test_errors_leave_out_untouched_for_argument_checks():
+    out = torch.full((5, 3, 3), 3.0)
+    with pytest.raises(RuntimeError):
+        torchrot.fit_rotation(M5, variant="nope", out=out)
+    with pytest.raises(RuntimeError):
+        torchrot.fit_rotation(M5, ROT5.double(), out=out)
+    assert (out == 3.0).all()
+
+
+def test_good_init_within_tolerance_accepted():
+    """init is accepted up to |R^T R - I| <= 1e-4 (float32) / 1e-7 (float64):
+    a perturbation d * E with |E_ij| <= 1 moves R^T R by at most 6 d."""
+    gen = torch.Generator().manual_seed(23)
+    for dtype, drift_ok, drift_bad in ((torch.float32, 1e-5, 1e-3), (torch.float64, 1e-8, 1e-5)):
+        M = M5.to(dtype)
+        R0 = ROT5.double()
+        E = torch.rand(5, 3, 3, generator=gen, dtype=torch.float64) * 2 - 1
+        torchrot.fit_rotation(M, (R0 + drift_ok * E).to(dtype), max_iter=1)
+        with pytest.raises(RuntimeError, match="init"):
+            torchrot.fit_rotation(M, (R0 + drift_bad * E).to(dtype), max_iter=1)
