@@ -180,28 +180,47 @@ def test_compile_dynamic_batch():
 # ---------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("batch", [(), (4,), (2, 5), (0,)], ids=str)
-@pytest.mark.parametrize("dt", [torch.float32, torch.float64, torch.float16, torch.bfloat16], ids=str)
-def test_meta(batch, dt):
+META_BATCHES = [(), (4,), (2, 5), (0,)]
+META_DTYPES = [torch.float32, torch.float64, torch.float16, torch.bfloat16]
+
+
+def _check_meta_result(R, iterations, status, M, batch, dt):
+    assert R.device.type == "meta" and R.shape == M.shape and R.dtype == dt
+    if iterations is not None:
+        assert iterations.shape == batch and iterations.dtype == torch.int32 and iterations.device.type == "meta"
+        assert status.shape == batch and status.dtype == torch.uint8 and status.device.type == "meta"
+
+
+@pytest.mark.parametrize("batch", META_BATCHES, ids=str)
+@pytest.mark.parametrize("dt", META_DTYPES, ids=str)
+def test_meta_op(batch, dt):
+    """The operator on meta tensors (its fake kernel): shapes and dtypes."""
     M = torch.empty(*batch, 3, 3, dtype=dt, device="meta")
     init = torch.empty(3, 3, dtype=dt, device="meta")
     for R in (
         op.fit_rotation(M, None, None, "conservative"),
         op.fit_rotation(M, init, 1, "newton"),
         torchrot.fit_rotation(M, init, max_iter=2, variant="gershgorin"),
-        torchrot.fit_rotation_reference(M),
-        torchrot.fit_rotation_reference(M, init, max_iter=1),
     ):
-        assert R.device.type == "meta" and R.shape == M.shape and R.dtype == dt
-    for R, iterations, status in (
-        op.fit_rotation_info(M, init, None, "conservative"),
-        torchrot.fit_rotation_reference(M, init, return_info=True),
-    ):
-        assert R.shape == M.shape and R.dtype == dt and R.device.type == "meta"
-        assert iterations.shape == batch and iterations.dtype == torch.int32 and iterations.device.type == "meta"
-        assert status.shape == batch and status.dtype == torch.uint8 and status.device.type == "meta"
+        _check_meta_result(R, None, None, M, batch, dt)
+    _check_meta_result(*op.fit_rotation_info(M, init, None, "conservative"), M, batch, dt)
+    _check_meta_result(*torchrot.fit_rotation_info(M), M, batch, dt)
     out = torch.empty(*batch, 3, 3, dtype=dt, device="meta")
     assert torchrot.fit_rotation(M, out=out) is out
+
+
+@pytest.mark.parametrize(
+    "batch, dt", [(b, torch.float32) for b in META_BATCHES] + [((4,), torch.float16), ((), torch.float64)], ids=str
+)
+@pytest.mark.parametrize("with_init", [False, True], ids=["cold", "warm"])
+def test_meta_reference(batch, dt, with_init):
+    """fit_rotation_reference runs on meta tensors (no data-dependent control
+    flow) and returns the right shapes and dtypes."""
+    M = torch.empty(*batch, 3, 3, dtype=dt, device="meta")
+    init = torch.empty(3, 3, dtype=dt, device="meta") if with_init else None
+    _check_meta_result(torchrot.fit_rotation_reference(M, init), None, None, M, batch, dt)
+    _check_meta_result(torchrot.fit_rotation_reference(M, init, max_iter=1), None, None, M, batch, dt)
+    _check_meta_result(*torchrot.fit_rotation_reference(M, init, return_info=True), M, batch, dt)
 
 
 def test_meta_checks_arguments():
@@ -273,7 +292,9 @@ def test_reference_iterations_match_kernel(name, variant, matrices):
 def test_reference_matches_kernel_with_init(dtype, variant, max_iter, matrices):
     M = matrices("rot60", N_REF, 32, dtype)
     init = (rotation_svd(M.double()) @ _rotations(N_REF, 33, torch.float64, math.radians(30))).to(dtype)
-    R_ref, it_ref, st_ref = torchrot.fit_rotation_reference(M, init, max_iter=max_iter, variant=variant, return_info=True)
+    R_ref, it_ref, st_ref = torchrot.fit_rotation_reference(
+        M, init, max_iter=max_iter, variant=variant, return_info=True
+    )
     R, it, st = torchrot.fit_rotation_info(M, init, max_iter=max_iter, variant=variant)
     assert (R_ref - R).abs().max().item() <= REFERENCE_TOL[dtype]
     assert torch.equal(it_ref, it) and torch.equal(st_ref, st)

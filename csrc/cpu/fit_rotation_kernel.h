@@ -12,6 +12,7 @@
 
 #include "../kernel/fit_rotation_impl.h"
 #include "kernel_table.h"
+#include "soa_transpose.h"
 
 namespace torchrot {
 namespace cpu {
@@ -37,6 +38,15 @@ template <typename L, bool kContiguous>
 inline Mat3<typename L::V> load_block(const typename L::Scalar* data, const int64_t stride[3], int64_t first,
                                       int count) {
   using T = typename L::Scalar;
+#ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
+  if constexpr (kContiguous && L::width > 1) {
+    if (count == L::width) {  // full block: in-register transposition
+      Mat3<typename L::V> A;
+      load_soa<T>(data + 9 * first, A.a);
+      return A;
+    }
+  }
+#endif
   alignas(64) T buf[9][L::width];
   for (int j = 0; j < L::width; ++j) {
     for (int k = 0; k < 9; ++k) {
@@ -52,6 +62,14 @@ template <typename L, bool kContiguous>
 inline void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, const int64_t stride[3],
                         int64_t first, int count) {
   using T = typename L::Scalar;
+#ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
+  if constexpr (kContiguous && L::width > 1) {
+    if (count == L::width) {
+      store_soa<T>(R.a, data + 9 * first);
+      return;
+    }
+  }
+#endif
   alignas(64) T buf[9][L::width];
   for (int k = 0; k < 9; ++k) L::store(R.a[k], buf[k]);
   for (int j = 0; j < count; ++j)
