@@ -20,6 +20,10 @@ enum class Variant : int8_t {
 struct FitOptions {
   int64_t max_iter = 0;
   Variant variant = Variant::kConservative;
+  // Orthonormality a warm start must have (|R^T R - I|_F); <= 0 means the
+  // compute dtype's default (1e-4 float, 1e-7 double). Inputs of reduced
+  // precision are computed in float but carry their own rounding.
+  double init_tolerance = 0;
 };
 
 // Per-matrix outcome, as reported by torchrot.fit_rotation_info.

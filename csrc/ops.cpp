@@ -60,8 +60,7 @@ at::Tensor checked_init(const at::Tensor& M, const std::optional<at::Tensor>& in
               M.scalar_type(), "), got ", init->scalar_type());
   const auto m_batch = M.sizes().slice(0, M.dim() - 2);
   const auto init_batch = init->sizes().slice(0, init->dim() - 2);
-  const bool broadcastable = init_batch.size() <= m_batch.size() &&
-                             at::infer_size(init_batch, m_batch) == m_batch.vec();
+  const bool broadcastable = at::is_expandable_to(init_batch, m_batch);
   TORCH_CHECK(broadcastable, kOpName, ": init of shape ", init->sizes(),
               " must broadcast to M's shape ", M.sizes());
   return init->expand(M.sizes());
@@ -80,9 +79,25 @@ void check_out(const at::Tensor& M, const at::Tensor& out) {
 
 // Runs the kernel on (N, 3, 3) views, converting reduced precision to float32.
 // `out` has M's shape and dtype; it may alias M or init exactly.
-void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out, const FitOptions& options,
+// Orthonormality tolerance of warm starts by the caller's dtype: reduced
+// precision rotations carry their own rounding (eps 1e-3 / 8e-3).
+double init_tolerance(at::ScalarType dtype) {
+  switch (dtype) {
+    case at::kHalf:
+      return 1e-2;
+    case at::kBFloat16:
+      return 5e-2;
+    case at::kFloat:
+      return 1e-4;
+    default:
+      return 1e-7;
+  }
+}
+
+void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out, FitOptions options,
              const at::Tensor* iterations, const at::Tensor* status) {
   const bool reduced = M.scalar_type() == at::kHalf || M.scalar_type() == at::kBFloat16;
+  options.init_tolerance = init_tolerance(M.scalar_type());
   const int64_t n = M.numel() / 9;
   at::Tensor m3 = M.reshape({n, 3, 3});
   at::Tensor init3 = init.defined() ? init.reshape({n, 3, 3}) : at::Tensor();
@@ -102,9 +117,9 @@ void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out,
   const int64_t bad_inits = fit_rotation_cpu(m3, init3.defined() ? &init3 : nullptr, out3, options,
                                              iterations, status);
   if (!direct) out.copy_(out3.view(out.sizes()));
-  TORCH_CHECK(bad_inits == 0, kOpName, ": init must hold rotations (|R^T R - I| <= ",
-              m3.scalar_type() == at::kDouble ? "1e-7" : "1e-4", ", det R > 0); ", bad_inits, " of ", n,
-              " matrices do not");
+  TORCH_CHECK(bad_inits == 0, kOpName, ": init must hold rotations (|R^T R - I|_F < ",
+              options.init_tolerance, " for ", M.scalar_type(), ", det R > 0); ", bad_inits, " of ", n,
+              " matrices do not (out has NaN in their place)");
 }
 
 at::Tensor fit_rotation_cpu_op(const at::Tensor& M, const std::optional<at::Tensor>& init,
@@ -124,8 +139,11 @@ void fit_rotation_out_cpu_op(const at::Tensor& M, const std::optional<at::Tensor
   check_out(M, out);
   // out may be M or init itself (an in-place warm-start update), but not a
   // partial overlap, which would let one matrix's output clobber another's input.
-  at::assert_no_partial_overlap(out, M);
-  if (init_b.defined()) at::assert_no_partial_overlap(out, init_b);
+  TORCH_CHECK(at::get_overlap_status(out, M) != at::MemOverlapStatus::Partial, kOpName,
+              ": out must be M itself or not overlap it; it partially overlaps M");
+  TORCH_CHECK(!init.has_value() || !init->defined() ||
+                  at::get_overlap_status(out, *init) != at::MemOverlapStatus::Partial,
+              kOpName, ": out must be init itself or not overlap it; it partially overlaps init");
   run_fit(M, init_b, out, options, nullptr, nullptr);
 }
 

@@ -1,14 +1,19 @@
 // The batched kernel, included by each kernel_*.cpp and compiled with that
 // file's instruction-set flags: walks the batch in parallel, in blocks of
 // L::width matrices laid out structure-of-arrays (entry k of every matrix of
-// the block in one vector), and fits each block with fit_rotation_lanes.
-// Results do not depend on the thread count or on where a matrix falls in a
-// block: every lane computes the same operations on its own matrix.
+// the block in one vector), and runs the per-lane state machine of
+// kernel/fit_rotation_impl.h on each block. In converged mode a block takes a
+// few steps per pass; lanes still running are saved and regrouped into full
+// blocks for the next pass, so a slow lane costs its own steps, not its
+// block's. Results do not depend on the thread count or on which block a
+// matrix lands in: every lane computes the same operations on its own matrix.
 #pragma once
 
 #include <ATen/Parallel.h>
 
+#include <algorithm>
 #include <atomic>
+#include <vector>
 
 #include "../kernel/fit_rotation_impl.h"
 #include "kernel_table.h"
@@ -76,44 +81,142 @@ inline void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, 
     for (int k = 0; k < 9; ++k) data[offset<kContiguous>(stride, first + j, k)] = buf[k][j];
 }
 
+// Matrices fitted together, so that the lanes saved between passes stay in
+// cache; and the Cayley steps of one pass in converged mode, after which
+// unfinished lanes are regrouped into full blocks.
+constexpr int64_t kSubChunk = 1024;
+constexpr int64_t kStepsPerPass = 4;
+
+// A lane still iterating, saved between passes (its normalised A as well:
+// `out` may alias M, whose block has been overwritten by then).
+template <typename T>
+struct SavedLane {
+  int64_t index;
+  T A[9], R[9];
+  T iterations, attempt_steps, escapes;
+  bool newton;
+};
+
 template <typename L>
-inline void store_diagnostics(const kernel::LaneResults<L>& res, const BatchArgs<typename L::Scalar>& args,
-                              int64_t first, int count) {
-  for (int j = 0; j < count; ++j) {
-    if (args.iterations != nullptr) args.iterations[first + j] = static_cast<int32_t>(L::lane(res.iterations, j));
-    if (args.status != nullptr) {
-      FitStatus s = FitStatus::kCayley;
-      if (L::lane_set(res.fallback, j)) s = FitStatus::kFallback;
-      if (L::lane_set(res.bad_init, j)) s = FitStatus::kBadInit;
-      if (L::lane_set(res.non_finite, j)) s = FitStatus::kNonFinite;
-      args.status[first + j] = static_cast<uint8_t>(s);
-    }
+inline SavedLane<typename L::Scalar> save_lane(const kernel::LaneState<L>& s, int lane, int64_t index) {
+  SavedLane<typename L::Scalar> saved;
+  saved.index = index;
+  const auto A = kernel::extract_lane<L>(s.A, lane);
+  const auto R = kernel::extract_lane<L>(s.R, lane);
+  for (int k = 0; k < 9; ++k) {
+    saved.A[k] = A.a[k];
+    saved.R[k] = R.a[k];
   }
+  saved.iterations = L::lane(s.iterations, lane);
+  saved.attempt_steps = L::lane(s.attempt_steps, lane);
+  saved.escapes = L::lane(s.escapes, lane);
+  saved.newton = L::lane_set(s.newton, lane);
+  return saved;
+}
+
+// A block of `count` saved lanes (the other lanes idle).
+template <typename L>
+inline kernel::LaneState<L> restore_block(const SavedLane<typename L::Scalar>* saved, int count) {
+  using T = typename L::Scalar;
+  alignas(64) T A[9][L::width], R[9][L::width], iterations[L::width], attempt[L::width],
+      escapes[L::width], newton[L::width], running[L::width];
+  for (int j = 0; j < L::width; ++j) {
+    const bool live = j < count;
+    for (int k = 0; k < 9; ++k) {
+      A[k][j] = live ? saved[j].A[k] : T(k % 4 == 0 ? 1 : 0);
+      R[k][j] = live ? saved[j].R[k] : T(k % 4 == 0 ? 1 : 0);
+    }
+    iterations[j] = live ? saved[j].iterations : T(0);
+    attempt[j] = live ? saved[j].attempt_steps : T(0);
+    escapes[j] = live ? saved[j].escapes : T(0);
+    newton[j] = live && saved[j].newton ? T(1) : T(0);
+    running[j] = live ? T(1) : T(0);
+  }
+  kernel::LaneState<L> s;
+  for (int k = 0; k < 9; ++k) {
+    s.A.a[k] = L::load(A[k]);
+    s.R.a[k] = L::load(R[k]);
+  }
+  const typename L::V zero(0);
+  s.iterations = L::load(iterations);
+  s.attempt_steps = L::load(attempt);
+  s.escapes = L::load(escapes);
+  s.newton = L::gt(L::load(newton), zero);
+  s.running = L::gt(L::load(running), zero);
+  s.accepted = s.fallback = s.bad_init = s.non_finite = L::all_false();
+  return s;
 }
 
 template <typename L>
-inline int count_lanes(typename L::Mask m, int count) {
-  int n = 0;
-  for (int j = 0; j < count; ++j) n += L::lane_set(m, j);
-  return n;
+inline void store_diagnostics(const kernel::LaneState<L>& s, int lane, const BatchArgs<typename L::Scalar>& args,
+                              int64_t index) {
+  if (args.iterations != nullptr) args.iterations[index] = static_cast<int32_t>(L::lane(s.iterations, lane));
+  if (args.status != nullptr) {
+    FitStatus status = FitStatus::kCayley;
+    if (L::lane_set(s.fallback, lane)) status = FitStatus::kFallback;
+    if (L::lane_set(s.bad_init, lane)) status = FitStatus::kBadInit;
+    if (L::lane_set(s.non_finite, lane)) status = FitStatus::kNonFinite;
+    args.status[index] = static_cast<uint8_t>(status);
+  }
 }
 
 // Fits matrices [begin, end); returns how many had a bad warm start.
 template <typename L, bool kContiguous>
 int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end) {
+  using T = typename L::Scalar;
+  const bool converge = args.options.max_iter <= 0;
+  const bool diagnostics = args.iterations != nullptr || args.status != nullptr;
+  const int64_t first_budget = converge ? kStepsPerPass : args.options.max_iter;
+  std::vector<SavedLane<T>> pending, next;
   int64_t bad_inits = 0;
-  for (int64_t first = begin; first < end; first += L::width) {
-    const int count = static_cast<int>(std::min<int64_t>(L::width, end - first));
-    // Both inputs are in registers before `out` is written: out may alias them.
-    const Mat3<typename L::V> A = load_block<L, kContiguous>(args.M, args.m_stride, first, count);
-    Mat3<typename L::V> R0;
-    if (args.init != nullptr) R0 = load_block<L, kContiguous>(args.init, args.init_stride, first, count);
-    Mat3<typename L::V> R;
-    const kernel::LaneResults<L> res =
-        kernel::fit_rotation_lanes<L>(A, args.init != nullptr ? &R0 : nullptr, args.options, R);
-    store_block<L, kContiguous>(R, args.out, args.out_stride, first, count);
-    if (args.iterations != nullptr || args.status != nullptr) store_diagnostics<L>(res, args, first, count);
-    if (args.init != nullptr && L::any(res.bad_init)) bad_inits += count_lanes<L>(res.bad_init, count);
+  for (int64_t sub = begin; sub < end; sub += kSubChunk) {
+    const int64_t sub_end = std::min(end, sub + kSubChunk);
+    pending.clear();
+    // First pass: consecutive blocks, straight from and to memory.
+    for (int64_t first = sub; first < sub_end; first += L::width) {
+      const int count = static_cast<int>(std::min<int64_t>(L::width, sub_end - first));
+      // Both inputs are in registers before `out` is written: out may alias them.
+      const Mat3<typename L::V> M = load_block<L, kContiguous>(args.M, args.m_stride, first, count);
+      Mat3<typename L::V> R0;
+      if (args.init != nullptr) R0 = load_block<L, kContiguous>(args.init, args.init_stride, first, count);
+      kernel::LaneState<L> s = kernel::begin_fit<L>(M, args.init != nullptr ? &R0 : nullptr, args.options);
+      kernel::advance<L>(s, args.options, first_budget);
+      // Lanes still running get a provisional result, replaced in a later pass.
+      store_block<L, kContiguous>(kernel::finish<L>(s), args.out, args.out_stride, first, count);
+      if (args.init != nullptr && L::any(s.bad_init)) {
+        for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
+      }
+      const bool any_running = L::any(s.running);
+      if (!diagnostics && !any_running) continue;
+      for (int j = 0; j < count; ++j) {
+        if (any_running && L::lane_set(s.running, j)) {
+          pending.push_back(save_lane<L>(s, j, first + j));
+        } else if (diagnostics) {
+          store_diagnostics<L>(s, j, args, first + j);
+        }
+      }
+    }
+    // Later passes: the unfinished lanes, regrouped into full blocks.
+    while (!pending.empty()) {
+      next.clear();
+      for (size_t i = 0; i < pending.size(); i += L::width) {
+        const int count = static_cast<int>(std::min<size_t>(L::width, pending.size() - i));
+        kernel::LaneState<L> s = restore_block<L>(pending.data() + i, count);
+        kernel::advance<L>(s, args.options, kStepsPerPass);
+        const Mat3<typename L::V> R = kernel::finish<L>(s);
+        for (int j = 0; j < count; ++j) {
+          const int64_t index = pending[i + j].index;
+          if (L::lane_set(s.running, j)) {
+            next.push_back(save_lane<L>(s, j, index));
+            continue;
+          }
+          const Mat3<T> r = kernel::extract_lane<L>(R, j);
+          for (int k = 0; k < 9; ++k) args.out[offset<kContiguous>(args.out_stride, index, k)] = r.a[k];
+          if (diagnostics) store_diagnostics<L>(s, j, args, index);
+        }
+      }
+      pending.swap(next);
+    }
   }
   return bad_inits;
 }

@@ -1,8 +1,11 @@
-// Algorithm 1 for a block of L::width matrices (one per lane): cold or warm
-// start, Cayley steps until each lane's own convergence, a check that each
-// fixed point is the maximum, saddle escapes, and the guaranteed fallback.
-// Lanes that converge early are frozen (never re-stepped into noise); lanes
-// that need the fallback take it alone, after the block's vector work.
+// Algorithm 1 as a per-lane state machine, for a block of L::width matrices
+// (one per lane): begin (normalise, start), advance (Cayley steps, each lane
+// until its own convergence, with the maximum check, saddle escapes and the
+// iteration cap), finish (final clean-up, fallback, NaN). A lane's state can
+// be saved and resumed in another block, so the batched kernel can regroup
+// slow lanes densely instead of stepping whole blocks for one straggler; the
+// operations a lane executes do not depend on its block, so results are
+// identical however lanes are grouped, and identical to the scalar path.
 #pragma once
 
 #include <cmath>
@@ -24,8 +27,10 @@ namespace {
 template <typename T>
 struct Tolerances {
   static constexpr T eps = std::numeric_limits<T>::epsilon();
-  // Converged once a step's s = tan^2(theta / 2) < eps: Newton converges
-  // quadratically there, so the applied step leaves an error of order eps.
+  // Converged once a Newton step (c = tr S) has s = tan^2(theta / 2) < eps:
+  // Newton converges quadratically there, so the applied step leaves an
+  // error of order eps. A damped step (c > tr S) can be tiny far from the
+  // optimum, so it never counts as convergence.
   static constexpr T converged = eps;
   // Below ~1 degree every variant switches to the Newton estimate c = tr S
   // (converged mode only). The conservative and Gershgorin estimates exceed
@@ -36,86 +41,53 @@ struct Tolerances {
   // Slack of the second-order check: the objective may fall short of the
   // maximum by at most 2 * slack * max |M_ij|.
   static constexpr T max_check_slack = T(4) * eps;
-  // Warm starts must be rotations to this orthonormality error.
-  static constexpr T init_orthonormality = sizeof(T) == 4 ? T(1e-4) : T(1e-7);
   // Cayley steps allowed in converged mode per start or saddle escape.
   static constexpr int converged_cap = 12;
   // Saddle escapes allowed in converged mode before the fallback decides.
   static constexpr int max_escapes = 2;
+  // Most steps a lane can take in converged mode.
+  static constexpr int converged_budget = (max_escapes + 1) * converged_cap;
 };
 
-// Per-lane outcome of fit_rotation_lanes.
-template <typename L>
-struct LaneResults {
-  typename L::V iterations;    // Cayley steps taken (as floating values)
-  typename L::Mask fallback;   // solved by the Horn/Jacobi fallback
-  typename L::Mask bad_init;   // the warm start was finite but not a rotation
-  typename L::Mask non_finite; // M or init held NaN/Inf
-};
-
-template <typename L>
-struct IterationEnd {
-  typename L::Mask converged;
-  Mat3<typename L::V> last_S;  // S = R^T A of each lane's last step
-};
-
-// Algorithm 1's loop: up to `cap` Cayley steps R <- R Q(z) on the `active`
-// lanes. A lane stops when its step is below the convergence tolerance or its
-// H is singular (then no step is taken).
-template <typename L>
-inline IterationEnd<L> run_cayley_steps(const Mat3<typename L::V>& A, int64_t cap, Variant variant,
-                                        bool switch_to_newton, typename L::Mask active,
-                                        Mat3<typename L::V>& R, typename L::V& iterations) {
-  using V = typename L::V;
-  using Mask = typename L::Mask;
-  using Tol = Tolerances<typename L::Scalar>;
-  IterationEnd<L> end;
-  end.converged = L::all_false();
-  for (int k = 0; k < 9; ++k) end.last_S.a[k] = V(0);
-  Mask done = L::mask_not(active);
-  Mask newton = L::all_false();
-  for (int64_t it = 0; it < cap && !L::all(done); ++it) {
-    const Mat3<V> S = transpose_times(R, A);
-    V c = objective_estimate<L>(S, variant);
-    if (switch_to_newton && variant != Variant::kNewton) c = L::select(newton, trace(S), c);
-    const CayleyStep<V> step = cayley_step(S, c);
-    const Mask finite = L::is_finite(step.zz);
-    const Mask stepping = L::mask_and(L::mask_not(done), finite);
-    done = L::mask_or(done, L::mask_not(finite));
-    R = select<L>(stepping, times(R, cayley_rotation(step)), R);
-    end.last_S = select<L>(stepping, S, end.last_S);
-    iterations = iterations + L::select(stepping, V(1), V(0));
-    if (switch_to_newton) {
-      newton = L::mask_or(newton, L::mask_and(stepping, L::lt(step.zz, V(Tol::newton_switch))));
-    }
-    const Mask now_converged = L::mask_and(stepping, L::lt(step.zz, V(Tol::converged)));
-    end.converged = L::mask_or(end.converged, now_converged);
-    done = L::mask_or(done, now_converged);
-  }
-  return end;
+// Default orthonormality tolerance of a warm start, per dtype.
+template <typename T>
+constexpr T default_init_tolerance() {
+  return sizeof(T) == 4 ? T(1e-4) : T(1e-7);
 }
 
-// Fits R maximising tr(R^T M) for each lane. `init` may be null.
 template <typename L>
-inline LaneResults<L> fit_rotation_lanes(const Mat3<typename L::V>& M, const Mat3<typename L::V>* init,
-                                         const FitOptions& options, Mat3<typename L::V>& R) {
+struct LaneState {
+  using V = typename L::V;
+  using Mask = typename L::Mask;
+  Mat3<V> A;         // M scaled to max |entry| 1
+  Mat3<V> R;         // the current rotation
+  V iterations;      // Cayley steps taken
+  V attempt_steps;   // steps since the start or the last saddle escape
+  V escapes;         // saddle escapes taken
+  Mask newton;       // converged mode: switched to the Newton estimate
+  Mask running;      // still iterating
+  Mask accepted;     // converged mode: verified maximum
+  Mask fallback;     // converged mode: needs the Horn/Jacobi fallback
+  Mask bad_init;     // the warm start was finite but not a rotation
+  Mask non_finite;   // M or init held NaN/Inf
+};
+
+// Normalises M and picks the start: init (re-orthonormalised) or the cold
+// start. `init` may be null; lanes whose M or init are unusable, and M = 0
+// (every rotation is optimal: the start is kept), do not run.
+template <typename L>
+inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename L::V>* init,
+                              const FitOptions& options) {
   using T = typename L::Scalar;
   using V = typename L::V;
   using Mask = typename L::Mask;
-  using Tol = Tolerances<T>;
-  LaneResults<L> res;
-  res.iterations = V(0);
-  res.fallback = L::all_false();
-  res.bad_init = L::all_false();
+  LaneState<L> s;
+  s.iterations = s.attempt_steps = s.escapes = V(0);
+  s.newton = s.accepted = s.fallback = s.bad_init = L::all_false();
 
-  Mask finite = L::all_true();
-  V max_abs(0);
-  for (int k = 0; k < 9; ++k) {
-    finite = L::mask_and(finite, L::is_finite(M.a[k]));
-    max_abs = L::max(max_abs, L::abs(M.a[k]));
-    if (init != nullptr) finite = L::mask_and(finite, L::is_finite(init->a[k]));
-  }
-  res.non_finite = L::mask_not(finite);
+  V max_abs(0);  // NaN if any entry is NaN
+  for (int k = 0; k < 9; ++k) max_abs = L::max(max_abs, L::abs(M.a[k]));
+  Mask finite = L::is_finite(max_abs);
 
   // Scale to max |entry| = 1: the maximiser is unchanged and no product in a
   // step can over- or underflow. 1 / subnormal may overflow, so those lanes
@@ -124,53 +96,100 @@ inline LaneResults<L> fit_rotation_lanes(const Mat3<typename L::V>& M, const Mat
                            V(std::ldexp(T(1), std::numeric_limits<T>::digits)), V(1));
   const Mask zero = L::eq(max_abs, V(0));
   const V inv = L::select(zero, V(0), V(1) / (max_abs * lift));
-  Mat3<V> A;
-  for (int k = 0; k < 9; ++k) A.a[k] = (M.a[k] * lift) * inv;
+  for (int k = 0; k < 9; ++k) s.A.a[k] = (M.a[k] * lift) * inv;
 
-  // M = 0: every rotation is optimal; such lanes keep the start (init or I).
-  Mask active = L::mask_and(finite, L::mask_not(zero));
   if (init != nullptr) {
-    res.bad_init = L::mask_and(finite, L::mask_not(is_rotation<L>(*init, Tol::init_orthonormality)));
-    active = L::mask_and(active, L::mask_not(res.bad_init));
+    const Mat3<V> G = gram(*init);
+    finite = L::mask_and(finite, L::is_finite(G(0, 0) + G(1, 1) + G(2, 2)));  // all entries finite
+    const T tol = options.init_tolerance > 0 ? T(options.init_tolerance) : default_init_tolerance<T>();
+    s.bad_init = L::mask_and(finite, L::mask_not(is_rotation<L>(*init, G, tol)));
     // Warm starts fed back call after call would drift from orthonormal.
-    R = reorthonormalize(*init);
+    s.R = reorthonormalize(*init, G);
   } else {
-    R = best_start_rotation<L>(A);
+    s.R = best_start_rotation<L>(s.A);
   }
+  s.non_finite = L::mask_not(finite);
+  s.running = L::mask_and(L::mask_and(finite, L::mask_not(zero)), L::mask_not(s.bad_init));
+  return s;
+}
 
-  if (options.max_iter > 0) {
-    run_cayley_steps<L>(A, options.max_iter, options.variant, /*switch_to_newton=*/false, active, R,
-                        res.iterations);
-  } else {
-    Mask accepted = L::all_false();
-    Mask pending = active;
-    for (int attempt = 0; attempt <= Tol::max_escapes && L::any(pending); ++attempt) {
-      const IterationEnd<L> end = run_cayley_steps<L>(A, Tol::converged_cap, options.variant,
-                                                      /*switch_to_newton=*/true, pending, R, res.iterations);
-      const Mask at_maximum = L::mask_and(end.converged, is_maximum<L>(end.last_S, Tol::max_check_slack));
-      accepted = L::mask_or(accepted, at_maximum);
-      // Converged to a saddle: escape by a half-turn and iterate again.
-      pending = L::mask_and(end.converged, L::mask_not(at_maximum));
-      if (attempt < Tol::max_escapes && L::any(pending)) {
-        R = select<L>(pending, times(R, saddle_escape_rotation<L>(transpose_times(R, A))), R);
+// Takes up to `budget` Cayley steps on the running lanes.
+template <typename L>
+inline void advance(LaneState<L>& s, const FitOptions& options, int64_t budget) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  using Mask = typename L::Mask;
+  using Tol = Tolerances<T>;
+  const bool converge = options.max_iter <= 0;
+  // Per-lane step cap; larger counts than 2^24 are left to `budget`.
+  const V cap(static_cast<T>(converge ? Tol::converged_cap : std::min<int64_t>(options.max_iter, 1 << 24)));
+  const V one(1), zero(0);
+  for (int64_t b = 0; b < budget && L::any(s.running); ++b) {
+    const Mat3<V> S = transpose_times(s.R, s.A);
+    const V t = trace(S);
+    V c = objective_estimate<L>(S, options.variant);
+    if (converge && options.variant != Variant::kNewton) c = L::select(s.newton, t, c);
+    const CayleyStep<V> step = cayley_step(S, c);
+
+    const Mask finite = L::is_finite(step.zz);
+    const Mask stepping = L::mask_and(s.running, finite);
+    const Mask stalled = L::mask_and(s.running, L::mask_not(finite));  // singular H: no step
+    s.R = select<L>(stepping, times(s.R, cayley_rotation(step)), s.R);
+    s.iterations = s.iterations + L::select(stepping, one, zero);
+    s.attempt_steps = s.attempt_steps + L::select(stepping, one, zero);
+    // A step of the Newton estimate (exactly c = tr S) below eps: converged.
+    Mask finished = L::mask_and(stepping, L::mask_and(L::eq(c, t), L::lt(step.zz, V(Tol::converged))));
+
+    if (converge) {
+      s.newton = L::mask_or(s.newton, L::mask_and(stepping, L::lt(step.zz, V(Tol::newton_switch))));
+      if (L::any(finished)) {
+        // The maximum, or a saddle (S of this last tiny step is symmetric
+        // up to it)? Saddles are escaped by a half-turn and iterate again.
+        const Mask at_maximum = L::mask_and(finished, is_maximum<L>(S, Tol::max_check_slack));
+        s.accepted = L::mask_or(s.accepted, at_maximum);
+        const Mask saddle = L::mask_and(finished, L::mask_not(at_maximum));
+        const Mask escape = L::mask_and(saddle, L::lt(s.escapes, V(Tol::max_escapes)));
+        s.fallback = L::mask_or(s.fallback, L::mask_and(saddle, L::mask_not(escape)));
+        if (L::any(escape)) {
+          s.R = select<L>(escape, times(s.R, saddle_escape_rotation<L>(transpose_times(s.R, s.A))), s.R);
+          s.escapes = s.escapes + L::select(escape, one, zero);
+          s.attempt_steps = L::select(escape, zero, s.attempt_steps);
+          s.newton = L::mask_and(s.newton, L::mask_not(escape));
+          finished = L::mask_and(finished, L::mask_not(escape));
+        }
       }
+      // Not converged within the cap, or stalled: the fallback decides.
+      const Mask exhausted = L::mask_and(L::mask_and(stepping, L::mask_not(finished)),
+                                         L::mask_not(L::lt(s.attempt_steps, cap)));
+      s.fallback = L::mask_or(s.fallback, L::mask_or(exhausted, stalled));
+      finished = L::mask_or(finished, L::mask_or(exhausted, stalled));
+    } else {
+      finished = L::mask_or(finished, L::mask_or(stalled, L::mask_not(L::lt(s.attempt_steps, cap))));
     }
-    // Products of Cayley factors accumulate rounding; one Newton-Schulz step
-    // brings R back to orthonormal at the dtype's precision.
-    R = select<L>(accepted, reorthonormalize(R), R);
-    res.fallback = L::mask_and(active, L::mask_not(accepted));
-    if (L::any(res.fallback)) {
-      for (int i = 0; i < L::width; ++i) {
-        if (L::lane_set(res.fallback, i)) insert_lane<L>(R, i, horn_rotation(extract_lane<L>(A, i)));
-      }
+    s.running = L::mask_and(s.running, L::mask_not(finished));
+  }
+}
+
+// The result of every lane that is not running: accepted lanes cleaned up by
+// one Newton-Schulz step (products of Cayley factors accumulate rounding),
+// fallback lanes solved exactly, unusable lanes NaN.
+template <typename L>
+inline Mat3<typename L::V> finish(const LaneState<L>& s) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  Mat3<V> R = s.R;
+  if (L::any(s.accepted)) R = select<L>(s.accepted, reorthonormalize(s.R), s.R);
+  if (L::any(s.fallback)) {
+    for (int i = 0; i < L::width; ++i) {
+      if (L::lane_set(s.fallback, i)) insert_lane<L>(R, i, horn_rotation(extract_lane<L>(s.A, i)));
     }
   }
-  const Mask nan_lanes = L::mask_or(res.non_finite, res.bad_init);
+  const typename L::Mask nan_lanes = L::mask_or(s.non_finite, s.bad_init);
   if (L::any(nan_lanes)) {
     const V nan(std::numeric_limits<T>::quiet_NaN());
     for (int k = 0; k < 9; ++k) R.a[k] = L::select(nan_lanes, nan, R.a[k]);
   }
-  return res;
+  return R;
 }
 
 }  // namespace

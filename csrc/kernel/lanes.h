@@ -32,7 +32,7 @@ struct ScalarLanes {
   static V select(Mask m, V if_true, V if_false) { return m ? if_true : if_false; }
   static V abs(V x) { return std::fabs(x); }
   static V sqrt(V x) { return std::sqrt(x); }
-  static V max(V a, V b) { return a > b ? a : b; }  // NaN handled by callers
+  static V max(V a, V b) { return (a != a || a > b) ? a : b; }  // NaN-propagating, as Vectorized
   static Mask lt(V a, V b) { return a < b; }
   static Mask gt(V a, V b) { return a > b; }
   static Mask eq(V a, V b) { return a == b; }
@@ -61,7 +61,7 @@ struct VectorLanes {
   static V select(Mask m, V if_true, V if_false) { return V::blendv(if_false, if_true, m); }
   static V abs(V x) { return x.abs(); }
   static V sqrt(V x) { return x.sqrt(); }
-  static V max(V a, V b) { return at::vec::maximum(a, b); }
+  static V max(V a, V b) { return at::vec::maximum(a, b); }  // NaN-propagating
   static Mask lt(V a, V b) { return a < b; }
   static Mask gt(V a, V b) { return a > b; }
   static Mask eq(V a, V b) { return a == b; }

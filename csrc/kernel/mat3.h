@@ -51,14 +51,32 @@ inline Mat3<V> identity3() {
   return I;
 }
 
+// R^T R, computed once per symmetric pair.
+template <typename V>
+inline Mat3<V> gram(const Mat3<V>& R) {
+  Mat3<V> G;
+  for (int r = 0; r < 3; ++r) {
+    for (int c = r; c < 3; ++c) {
+      G(r, c) = R(0, r) * R(0, c) + R(1, r) * R(1, c) + R(2, r) * R(2, c);
+      G(c, r) = G(r, c);
+    }
+  }
+  return G;
+}
+
 // One Newton-Schulz step towards the orthonormal polar factor,
 // R <- R (3 I - R^T R) / 2. It squares the orthonormality error of an
 // almost-rotation, so warm starts fed back call after call do not drift.
+// G is R^T R (see gram).
 template <typename V>
-inline Mat3<V> reorthonormalize(const Mat3<V>& R) {
-  Mat3<V> G = transpose_times(R, R);
+inline Mat3<V> reorthonormalize(const Mat3<V>& R, Mat3<V> G) {
   for (int i = 0; i < 9; ++i) G.a[i] = V(i % 4 == 0 ? 1.5 : 0) - V(0.5) * G.a[i];
   return times(R, G);
+}
+
+template <typename V>
+inline Mat3<V> reorthonormalize(const Mat3<V>& R) {
+  return reorthonormalize(R, gram(R));
 }
 
 }  // namespace

@@ -30,20 +30,19 @@ inline typename L::Mask is_maximum(const Mat3<typename L::V>& S, typename L::Sca
   return L::mask_and(L::gt(p00, zero), L::mask_and(L::gt(minor2, zero), L::gt(det, zero)));
 }
 
-// Is R a proper rotation up to `tol` (max |R^T R - I| <= tol and det R > 0)?
+// Is R, with Gram matrix G = R^T R, a proper rotation up to `tol`:
+// |R^T R - I|_F < tol and det R > 0? NaN fails.
 template <typename L>
-inline typename L::Mask is_rotation(const Mat3<typename L::V>& R, typename L::Scalar tol) {
+inline typename L::Mask is_rotation(const Mat3<typename L::V>& R, const Mat3<typename L::V>& G,
+                                    typename L::Scalar tol) {
   using V = typename L::V;
-  const Mat3<V> G = transpose_times(R, R);
-  typename L::Mask ok = L::all_true();
-  for (int i = 0; i < 9; ++i) {
-    const V deviation = L::abs(G.a[i] - V(i % 4 == 0 ? 1 : 0));
-    ok = L::mask_and(ok, L::lt(deviation, V(tol)));  // NaN fails
-  }
+  const V d0 = G(0, 0) - V(1), d1 = G(1, 1) - V(1), d2 = G(2, 2) - V(1);
+  const V off = G(0, 1) * G(0, 1) + G(0, 2) * G(0, 2) + G(1, 2) * G(1, 2);
+  const V deviation2 = d0 * d0 + d1 * d1 + d2 * d2 + V(2) * off;
   const V det = R(0, 0) * (R(1, 1) * R(2, 2) - R(1, 2) * R(2, 1)) -
                 R(0, 1) * (R(1, 0) * R(2, 2) - R(1, 2) * R(2, 0)) +
                 R(0, 2) * (R(1, 0) * R(2, 1) - R(1, 1) * R(2, 0));
-  return L::mask_and(ok, L::gt(det, V(0)));
+  return L::mask_and(L::lt(deviation2, V(tol * tol)), L::gt(det, V(0)));
 }
 
 }  // namespace
