@@ -152,6 +152,12 @@ def _describe(got, ref, M, init=None, limit=3) -> str:
         if init is not None:
             line += f" init={init.reshape(-1, 9)[i].tolist()}"
         line += f"\n       R={got[0].reshape(-1, 9)[i].tolist()}\n   R_ref={ref[0].reshape(-1, 9)[i].tolist()}"
+        gb, rb = _bits(got[0]).reshape(-1, 9)[i], _bits(ref[0]).reshape(-1, 9)[i]
+        width = 2 * got[0].element_size()
+        diffs = [f"{k}: {int(g) & (1 << 4 * width) - 1:0{width}x} vs {int(r) & (1 << 4 * width) - 1:0{width}x}"
+                 for k, (g, r) in enumerate(zip(gb.tolist(), rb.tolist())) if g != r]
+        if diffs:
+            line += "\n       bits differ at entries " + ", ".join(diffs)
         if len(got) > 1:
             line += (
                 f"\n       iterations={int(got[1].reshape(-1)[i])} (ref {int(ref[1].reshape(-1)[i])}),"
@@ -204,7 +210,7 @@ def _scatter_non_finite(A: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
 def mixed_batch(dtype: torch.dtype, warm: bool, seed: int = 0):
     """``(M, init)`` (init None when cold): all DISTRIBUTIONS, the edge cases
     and matrices with NaN/Inf entries (in M, and for warm also in init), once
-    in order and once shuffled; contiguous, ~600 matrices."""
+    in order and once shuffled; contiguous, 662 (cold) or 686 (warm) matrices."""
     Ms, inits = [], []
     for j, name in enumerate(DISTRIBUTIONS):
         if warm:
@@ -222,11 +228,11 @@ def mixed_batch(dtype: torch.dtype, warm: bool, seed: int = 0):
     finite = make_matrices("gaussian", N_NON_FINITE, seed + 13, dtype)
     Ms.append(_scatter_non_finite(finite, gen))
     if warm:
-        init_nf = random_rotations(N_NON_FINITE, torch.Generator().manual_seed(seed + 17)).to(dtype)
-        # non-finite warm starts for a quarter of them, on matrices whose M is
-        # finite elsewhere in the batch too
-        init_nf[::4] = _scatter_non_finite(init_nf[::4], gen)
-        inits.append(init_nf)
+        inits.append(random_rotations(N_NON_FINITE, torch.Generator().manual_seed(seed + 17)).to(dtype))
+        # and finite M with a non-finite warm start
+        M_bad_init, bad_init = make_warm_start("warm", N_NON_FINITE // 4, seed + 23, dtype)
+        Ms.append(M_bad_init)
+        inits.append(_scatter_non_finite(bad_init, gen))
     M = torch.cat(Ms)
     init = torch.cat(inits) if warm else None
     perm = torch.randperm(M.shape[0], generator=torch.Generator().manual_seed(seed + 19))
@@ -247,7 +253,8 @@ def test_mixed_batch_has_what_it_promises():
             assert torch.isnan(M).any() and torch.isinf(M).any()
             if warm:
                 assert init.shape == M.shape
-                assert (~torch.isfinite(init)).any()
+                bad_init = ~torch.isfinite(init).reshape(-1, 9).all(1)
+                assert (bad_init & finite).sum() >= N_NON_FINITE // 2
 
 
 # ---------------------------------------------------------------------------
@@ -566,31 +573,43 @@ def restore_threads():
     torch.set_num_threads(n)
 
 
+_THREAD_CASES = {  # name -> (warm start?, max_iter, variant)
+    "cold-converged-conservative": (False, None, "conservative"),
+    "warm-iter1-gershgorin": (True, 1, "gershgorin"),
+    "warm-converged-newton": (True, None, "newton"),
+}
+
+
 @pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
-def test_thread_count_independence(dtype, use_isa, restore_threads):
-    """At the default (hardware) kernel, 1, 2 and 3 threads give bit-identical
-    R, iterations and status, in converged cold and one-step warm mode."""
+@pytest.mark.parametrize("isa", [pytest.param(None, id="unset")] + ALL_ISA_PARAMS)
+def test_thread_count_independence(isa, dtype, use_isa, restore_threads):
+    """At the default kernel (variable unset: the hardware level) and at each
+    kernel by name, 1, 2 and 3 threads give bit-identical R, iterations and
+    status, in converged cold, one-step warm and converged warm mode; the
+    single-threaded result also equals the scalar kernel's on these 50k
+    matrices."""
     M, init = _large_batch(dtype)
-    cases = {
-        "cold-converged-conservative": (None, None, "conservative"),
-        "warm-iter1-gershgorin": (init, 1, "gershgorin"),
-        "warm-converged-newton": (init, None, "newton"),
-    }
+    expected_kernel = HARDWARE_ISA if isa is None else isa
     results = {}
-    with use_isa(None):
-        assert _cpu_kernel() == HARDWARE_ISA
-        for threads in (1, 2, 3):
-            torch.set_num_threads(threads)
-            assert torch.get_num_threads() == threads
-            for name, (i, k, v) in cases.items():
-                results[threads, name] = _info(M, i, k, v)
+    for threads in (1, 2, 3):
+        torch.set_num_threads(threads)
+        assert torch.get_num_threads() == threads
+        for name, (warm, k, v) in _THREAD_CASES.items():
+            with use_isa(isa):
+                assert _cpu_kernel() == expected_kernel
+                results[threads, name] = _info(M, init if warm else None, k, v)
+    torch.set_num_threads(1)
     failures = []
-    for name in cases:
+    for name, (warm, k, v) in _THREAD_CASES.items():
         for threads in (2, 3):
             if not _same(results[threads, name], results[1, name]):
                 failures.append(
                     f"{name}: {threads} threads vs 1:\n"
-                    + _describe(results[threads, name], results[1, name], M, init if cases[name][0] is not None else None)
+                    + _describe(results[threads, name], results[1, name], M, init if warm else None)
                 )
-    assert not failures, f"{HARDWARE_ISA} {dtype_id(dtype)}:\n" + "\n".join(failures)
+        ref = _run_info(use_isa, "scalar", M, init if warm else None, k, v)
+        if not _same(results[1, name], ref):
+            failures.append(f"{name}: 1 thread vs the scalar kernel:\n" + _describe(
+                results[1, name], ref, M, init if warm else None))
+    assert not failures, f"{expected_kernel} {dtype_id(dtype)}:\n" + "\n".join(failures)
     assert (results[1, "cold-converged-conservative"][2] == 3).any()

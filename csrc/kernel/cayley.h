@@ -23,10 +23,21 @@ namespace kernel {
 inline namespace CPU_CAPABILITY {
 namespace {
 
+// A Cayley step kept as a fraction: z = -w / d with w = adj(H) m and d = det H
+// (Cramer's rule, Eqs. 31-33). Keeping d and w separate lets Eq. 10 be
+// evaluated with a single division and the step size be tested without any.
 template <typename V>
 struct CayleyStep {
-  V z[3];  // the Cayley parameters of the update Q
-  V zz;    // z.z, the paper's s = tan^2(theta / 2)
+  V w[3];  // adj(H) m
+  V d;     // det H
+  V ww;    // w.w
+  V dd;    // d^2; the paper's s = z.z = tan^2(theta / 2) is ww / dd
+
+  // Is s < tol? False when H is singular or the step is not finite.
+  template <typename L>
+  typename L::Mask smaller_than(typename L::Scalar tol) const {
+    return L::lt(ww, V(tol) * dd);
+  }
 };
 
 template <typename V>
@@ -63,8 +74,8 @@ inline typename L::V objective_estimate(const Mat3<typename L::V>& S, Variant va
   return L::sqrt(g_sym * g_sym + mm);  // Eqs. 26-27
 }
 
-// Algorithm 2 for a given c: solve (S + S^T - (t + c) I) z = -m by Cramer's
-// rule (Eqs. 30-33), written with the symmetric adjugate of H.
+// Algorithm 2 for a given c: (S + S^T - (t + c) I) z = -m by Cramer's rule
+// (Eqs. 30-33), written with the symmetric adjugate of H.
 template <typename V>
 inline CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
   V m[3];
@@ -83,33 +94,38 @@ inline CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
   const V c11 = h00 * h22 - h02 * h02;
   const V c12 = h01 * h02 - h00 * h12;
   const V c22 = h00 * h11 - h01 * h01;
-  const V neg_inv_det = V(-1) / (h00 * c00 + h01 * c01 + h02 * c02);
 
   CayleyStep<V> step;
-  step.z[0] = (c00 * m[0] + c01 * m[1] + c02 * m[2]) * neg_inv_det;
-  step.z[1] = (c01 * m[0] + c11 * m[1] + c12 * m[2]) * neg_inv_det;
-  step.z[2] = (c02 * m[0] + c12 * m[1] + c22 * m[2]) * neg_inv_det;
-  step.zz = step.z[0] * step.z[0] + step.z[1] * step.z[1] + step.z[2] * step.z[2];
+  step.d = h00 * c00 + h01 * c01 + h02 * c02;
+  step.w[0] = c00 * m[0] + c01 * m[1] + c02 * m[2];
+  step.w[1] = c01 * m[0] + c11 * m[1] + c12 * m[2];
+  step.w[2] = c02 * m[0] + c12 * m[1] + c22 * m[2];
+  step.ww = step.w[0] * step.w[0] + step.w[1] * step.w[1] + step.w[2] * step.w[2];
+  step.dd = step.d * step.d;
   return step;
 }
 
-// The rotation with Cayley parameters z (Eq. 10).
+// The rotation with Cayley parameters z = -w / d (Eq. 10), multiplied
+// through by d^2: Q = ((d^2 - w.w) I + 2 w w^T - 2 d [w]x) / (d^2 + w.w).
 template <typename V>
 inline Mat3<V> cayley_rotation(const CayleyStep<V>& step) {
-  const V x = step.z[0], y = step.z[1], w = step.z[2];
-  const V inv = V(1) / (V(1) + step.zz);
-  const V diag = V(1) - step.zz;
+  const V x = step.w[0], y = step.w[1], w = step.w[2];
+  const V inv = V(1) / (step.dd + step.ww);
+  const V diag = step.dd - step.ww;
   const V two_inv = V(2) * inv;
+  const V two_d_inv = step.d * two_inv;
   Mat3<V> Q;
   Q(0, 0) = (diag + V(2) * x * x) * inv;
   Q(1, 1) = (diag + V(2) * y * y) * inv;
   Q(2, 2) = (diag + V(2) * w * w) * inv;
-  Q(0, 1) = (x * y - w) * two_inv;
-  Q(1, 0) = (x * y + w) * two_inv;
-  Q(0, 2) = (x * w + y) * two_inv;
-  Q(2, 0) = (x * w - y) * two_inv;
-  Q(1, 2) = (y * w - x) * two_inv;
-  Q(2, 1) = (y * w + x) * two_inv;
+  const V xy = x * y * two_inv, xw = x * w * two_inv, yw = y * w * two_inv;
+  const V dx = x * two_d_inv, dy = y * two_d_inv, dw = w * two_d_inv;
+  Q(0, 1) = xy + dw;
+  Q(1, 0) = xy - dw;
+  Q(0, 2) = xw - dy;
+  Q(2, 0) = xw + dy;
+  Q(1, 2) = yw + dx;
+  Q(2, 1) = yw - dx;
   return Q;
 }
 

@@ -18,42 +18,49 @@ namespace kernel {
 inline namespace CPU_CAPABILITY {
 namespace {
 
-constexpr int kNumStartCandidates = 12;
-
-// Quaternion (w, x, y, z) of candidate `k`, times 2 so the entries are exact.
-inline void start_candidate_quaternion_x2(int k, int q[4]) {
-  if (k < 4) {
-    for (int i = 0; i < 4; ++i) q[i] = (i == k) ? 2 : 0;
-    return;
-  }
-  const int signs = k - 4;  // bit b set: component b + 1 is negative
-  q[0] = 1;
-  for (int b = 0; b < 3; ++b) q[b + 1] = (signs >> b) & 1 ? -1 : 1;
+// Objective of the third-turn candidate q = (1, s1, s2, s3) / 2 with the
+// signs given as template arguments: since tr K = 0,
+// q^T K q = (s1 K01 + s2 K02 + s3 K03 + s1 s2 K12 + s1 s3 K13 + s2 s3 K23) / 2.
+template <int S1, int S2, int S3, typename V>
+inline V third_turn_objective(const V K[16]) {
+  auto term = [](int sign, V x) { return sign > 0 ? x : V(0) - x; };
+  return V(0.5) * (term(S1, K[1]) + term(S2, K[2]) + term(S3, K[3]) + term(S1 * S2, K[6]) +
+                   term(S1 * S3, K[7]) + term(S2 * S3, K[11]));
 }
 
-// The candidate with the largest objective tr(R_k^T M), per lane; ties go to
-// the lowest index, so the choice is deterministic.
+// Keeps the candidate (quaternion times 2, exact) if its objective is larger;
+// ties keep the earlier candidate, so the choice is deterministic.
+template <typename L>
+inline void keep_better(typename L::V value, int qw, int qx, int qy, int qz, typename L::V& best,
+                        typename L::V best_q[4]) {
+  using V = typename L::V;
+  const typename L::Mask better = L::gt(value, best);
+  best = L::select(better, value, best);
+  const int q[4] = {qw, qx, qy, qz};
+  for (int i = 0; i < 4; ++i) best_q[i] = L::select(better, V(q[i]), best_q[i]);
+}
+
+// The best of the 12 candidates, per lane.
 template <typename L>
 inline Mat3<typename L::V> best_start_rotation(const Mat3<typename L::V>& M) {
   using V = typename L::V;
   V K[16];
   horn_matrix(M, K);
-  V best_value = K[0];
-  V best_q[4] = {V(2), V(0), V(0), V(0)};
-  for (int k = 1; k < kNumStartCandidates; ++k) {
-    int q[4];
-    start_candidate_quaternion_x2(k, q);
-    V value = V(0);  // (2q)^T K (2q) / 4 = q^T K q, summed over nonzero terms
-    for (int i = 0; i < 4; ++i)
-      for (int j = 0; j < 4; ++j)
-        if (q[i] * q[j] != 0) value = value + V(q[i] * q[j]) * K[4 * i + j];
-    value = value * V(0.25);
-    const typename L::Mask better = L::gt(value, best_value);
-    best_value = L::select(better, value, best_value);
-    for (int i = 0; i < 4; ++i) best_q[i] = L::select(better, V(q[i]), best_q[i]);
-  }
+  V best = K[0];  // the identity, q = e_w
+  V q[4] = {V(2), V(0), V(0), V(0)};
+  keep_better<L>(K[5], 0, 2, 0, 0, best, q);   // half-turns about x, y, z
+  keep_better<L>(K[10], 0, 0, 2, 0, best, q);
+  keep_better<L>(K[15], 0, 0, 0, 2, best, q);
+  keep_better<L>(third_turn_objective<+1, +1, +1>(K), 1, +1, +1, +1, best, q);
+  keep_better<L>(third_turn_objective<-1, +1, +1>(K), 1, -1, +1, +1, best, q);
+  keep_better<L>(third_turn_objective<+1, -1, +1>(K), 1, +1, -1, +1, best, q);
+  keep_better<L>(third_turn_objective<-1, -1, +1>(K), 1, -1, -1, +1, best, q);
+  keep_better<L>(third_turn_objective<+1, +1, -1>(K), 1, +1, +1, -1, best, q);
+  keep_better<L>(third_turn_objective<-1, +1, -1>(K), 1, -1, +1, -1, best, q);
+  keep_better<L>(third_turn_objective<+1, -1, -1>(K), 1, +1, -1, -1, best, q);
+  keep_better<L>(third_turn_objective<-1, -1, -1>(K), 1, -1, -1, -1, best, q);
   const V h(0.5);
-  return quaternion_rotation(h * best_q[0], h * best_q[1], h * best_q[2], h * best_q[3]);
+  return quaternion_rotation(h * q[0], h * q[1], h * q[2], h * q[3]);
 }
 
 }  // namespace

@@ -131,17 +131,18 @@ inline void advance(LaneState<L>& s, const FitOptions& options, int64_t budget) 
     if (converge && options.variant != Variant::kNewton) c = L::select(s.newton, t, c);
     const CayleyStep<V> step = cayley_step(S, c);
 
-    const Mask finite = L::is_finite(step.zz);
-    const Mask stepping = L::mask_and(s.running, finite);
-    const Mask stalled = L::mask_and(s.running, L::mask_not(finite));  // singular H: no step
+    // A singular H (or a non-finite step) takes no step.
+    const Mask valid = L::mask_and(L::gt(step.dd, zero), L::is_finite(step.dd + step.ww));
+    const Mask stepping = L::mask_and(s.running, valid);
+    const Mask stalled = L::mask_and(s.running, L::mask_not(valid));
     s.R = select<L>(stepping, times(s.R, cayley_rotation(step)), s.R);
     s.iterations = s.iterations + L::select(stepping, one, zero);
     s.attempt_steps = s.attempt_steps + L::select(stepping, one, zero);
     // A step of the Newton estimate (exactly c = tr S) below eps: converged.
-    Mask finished = L::mask_and(stepping, L::mask_and(L::eq(c, t), L::lt(step.zz, V(Tol::converged))));
+    Mask finished = L::mask_and(stepping, L::mask_and(L::eq(c, t), step.template smaller_than<L>(Tol::converged)));
 
     if (converge) {
-      s.newton = L::mask_or(s.newton, L::mask_and(stepping, L::lt(step.zz, V(Tol::newton_switch))));
+      s.newton = L::mask_or(s.newton, L::mask_and(stepping, step.template smaller_than<L>(Tol::newton_switch)));
       if (L::any(finished)) {
         // The maximum, or a saddle (S of this last tiny step is symmetric
         // up to it)? Saddles are escaped by a half-turn and iterate again.
