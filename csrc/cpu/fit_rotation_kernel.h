@@ -19,9 +19,6 @@
 #include "kernel_table.h"
 #include "soa_transpose.h"
 
-#ifndef TORCHROT_STEPS_PER_PASS
-#define TORCHROT_STEPS_PER_PASS 3
-#endif
 
 namespace torchrot {
 namespace cpu {
