@@ -23,7 +23,8 @@ CONVERGED_CAP = 12
 MAX_ESCAPES = 2
 NEWTON_SWITCH = 1e-4
 MAX_CHECK_SLACK_EPS = 4.0
-INIT_ORTHONORMALITY = {torch.float32: 1e-4, torch.float64: 1e-7}
+# |R^T R - I|_F a warm start may have, by the caller's dtype (csrc/ops.cpp).
+INIT_TOLERANCE = {torch.float16: 1e-2, torch.bfloat16: 5e-2, torch.float32: 1e-4, torch.float64: 1e-7}
 
 # FitStatus codes (csrc/fit_rotation.h).
 STATUS_CAYLEY, STATUS_FALLBACK, STATUS_BAD_INIT, STATUS_NON_FINITE = 0, 1, 2, 3
@@ -70,21 +71,37 @@ def _objective_estimate(S, t, mm, variant: str):
     return torch.sqrt(g_sym * g_sym + mm)  # Eq. 27
 
 
+def _cayley_fraction(S, c):
+    """Algorithm 2 as a fraction (csrc/kernel/cayley.h): z = -w / d with
+    w = adj(H) m and d = det H, H = S + S^T - (tr S + c) I (Eqs. 24, 31-33)."""
+    m = _skew_vector(S)
+    eye = torch.eye(3, dtype=S.dtype, device=S.device)
+    H = S + S.mT - (_trace(S) + c)[..., None, None] * eye
+    adj = _adjugate(H)
+    d = (H[..., 0, :] * adj[..., :, 0]).sum(-1)
+    w = (adj @ m.unsqueeze(-1)).squeeze(-1)
+    return w, d
+
+
 def _cayley_step(S, variant: str, newton_mask=None):
     """Algorithm 2: z solving (S + S^T - (t + c) I) z = -m (Eq. 24)."""
-    m = _skew_vector(S)
     t = _trace(S)
-    mm = (m * m).sum(-1)
-    c = _objective_estimate(S, t, mm, variant)
+    c = _objective_estimate(S, t, (_skew_vector(S) ** 2).sum(-1), variant)
     if newton_mask is not None:
         c = torch.where(newton_mask, t, c)
-    eye = torch.eye(3, dtype=S.dtype, device=S.device)
-    H = S + S.mT - (t + c)[..., None, None] * eye
-    # Cramer's rule through the adjugate, as in the kernel (Eqs. 31-33).
-    adj = _adjugate(H)
-    det = (H[..., 0, :] * adj[..., :, 0]).sum(-1)
-    z = -(adj @ m.unsqueeze(-1)).squeeze(-1) / det.unsqueeze(-1)
-    return z
+    w, d = _cayley_fraction(S, c)
+    return -w / d.unsqueeze(-1)
+
+
+def _fraction_rotation(w, d):
+    """Eq. 10 for z = -w / d, multiplied through by d^2 (one division)."""
+    ww = (w * w).sum(-1)[..., None, None]
+    dd = (d * d)[..., None, None]
+    x, y, v = w.unbind(-1)
+    zero = torch.zeros_like(x)
+    cross = torch.stack([zero, -v, y, v, zero, -x, -y, x, zero], -1).reshape(w.shape + (3,))
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    return ((dd - ww) * eye + 2 * w.unsqueeze(-1) * w.unsqueeze(-2) - 2 * d[..., None, None] * cross) / (dd + ww)
 
 
 def _adjugate(H: torch.Tensor) -> torch.Tensor:
@@ -209,46 +226,78 @@ def _normalized(M: torch.Tensor):
     return (M * lift) / denom, max_abs[..., 0, 0]
 
 
-def _is_rotation(R: torch.Tensor, tol: float) -> torch.Tensor:
+def _is_rotation(R: torch.Tensor, G: torch.Tensor, tol: float) -> torch.Tensor:
+    """|R^T R - I|_F < tol and det R > 0, with G = R^T R (csrc/kernel/optimality.h)."""
     eye = torch.eye(3, dtype=R.dtype, device=R.device)
-    ortho = ((R.mT @ R - eye).abs() <= tol).flatten(-2).all(-1)
-    return ortho & (torch.linalg.det(R) > 0)
+    deviation2 = ((G - eye) ** 2).sum((-2, -1))
+    return (deviation2 < tol * tol) & (torch.linalg.det(R) > 0)
 
 
-def _run_cayley_steps(A, R, cap: int, variant: str, switch_to_newton: bool, active, eps: float):
-    """Up to ``cap`` masked Cayley steps R <- R Q(z) (Algorithm 1's loop).
+def _best_start_rotation(A: torch.Tensor) -> torch.Tensor:
+    """The best of the 12 cold-start candidates, ties to the first (cold_start.h)."""
+    C = start_candidates(A.dtype, A.device)
+    K = horn_matrix(A)
+    values = [K[..., 0, 0], K[..., 1, 1], K[..., 2, 2], K[..., 3, 3]]
+    for signs in range(8):
+        s1, s2, s3 = (-1.0 if (signs >> b) & 1 else 1.0 for b in range(3))
+        values.append(0.5 * (s1 * K[..., 0, 1] + s2 * K[..., 0, 2] + s3 * K[..., 0, 3]
+                             + s1 * s2 * K[..., 1, 2] + s1 * s3 * K[..., 1, 3] + s2 * s3 * K[..., 2, 3]))
+    best = torch.stack(values, -1).argmax(-1)  # first maximum on ties
+    return C.index_select(0, best.reshape(-1)).reshape(A.shape)
 
-    A matrix stops when its step is below eps or its H is singular (no step
-    taken), or if it is not ``active``. Returns R, steps taken per matrix,
-    whether each converged, and S = R^T A of each matrix's last step.
-    """
-    batch = A.shape[:-2]
-    iterations = torch.zeros(batch, dtype=torch.int32, device=A.device)
-    done = ~active.expand(batch)
-    converged = torch.zeros(batch, dtype=torch.bool, device=A.device)
-    newton = torch.zeros_like(converged)
-    S_last = torch.zeros_like(A)
-    for _ in range(cap):
+
+def _advance(state: dict, variant: str, max_iter: int | None, eps: float) -> None:
+    """All Cayley steps of every running matrix, as the kernel's advance()
+    (csrc/kernel/fit_rotation_impl.h), masked instead of branched."""
+    A, R = state["A"], state["R"]
+    converge = max_iter is None
+    running = state["running"]
+    zeros = torch.zeros_like(running)
+    newton, accepted, fallback = zeros, zeros, zeros
+    iterations = torch.zeros(running.shape, dtype=torch.int32, device=A.device)
+    attempt = torch.zeros_like(iterations)
+    escapes = torch.zeros_like(iterations)
+    cap = CONVERGED_CAP if converge else max_iter
+    budget = CONVERGED_CAP * (MAX_ESCAPES + 1) if converge else max_iter
+    for _ in range(budget):
         S = R.mT @ A
-        z = _cayley_step(S, variant, newton if switch_to_newton else None)
-        zz = (z * z).sum(-1)
-        finite = torch.isfinite(zz)
-        step = ~done & finite
-        done = done | ~finite
-        z = torch.where(step[..., None], z, torch.zeros_like(z))
-        R = torch.where(step[..., None, None], R @ cayley_rotation(z), R)
-        S_last = torch.where(step[..., None, None], S, S_last)
-        iterations = iterations + step.to(torch.int32)
-        if switch_to_newton:
-            newton = newton | (step & (zz < NEWTON_SWITCH))
-        now_converged = step & (zz < eps)
-        converged = converged | now_converged
-        done = done | now_converged
-    return R, iterations, converged, S_last
+        t = _trace(S)
+        c = _objective_estimate(S, t, (_skew_vector(S) ** 2).sum(-1), variant)
+        if converge:
+            c = torch.where(newton, t, c)
+        w, d = _cayley_fraction(S, c)
+        ww, dd = (w * w).sum(-1), d * d
+        valid = (dd > 0) & torch.isfinite(dd + ww)
+        stepping = running & valid
+        stalled = running & ~valid
+        safe_d = torch.where(stepping, d, torch.ones_like(d))
+        R = torch.where(stepping[..., None, None], R @ _fraction_rotation(w, safe_d), R)
+        iterations = iterations + stepping.to(torch.int32)
+        attempt = attempt + stepping.to(torch.int32)
+        undamped = ~(c - t > math.sqrt(eps) * t.abs())  # see Tolerances::undamped
+        finished = stepping & undamped & (ww < eps * dd)
+        if converge:
+            newton = newton | (stepping & (ww < NEWTON_SWITCH * dd))
+            at_maximum = finished & _is_maximum(S, MAX_CHECK_SLACK_EPS * eps)
+            accepted = accepted | at_maximum
+            saddle = finished & ~at_maximum
+            escape = saddle & (escapes < MAX_ESCAPES)
+            fallback = fallback | (saddle & ~escape)
+            R = torch.where(escape[..., None, None], R @ saddle_escape_rotation(R.mT @ A), R)
+            escapes = escapes + escape.to(torch.int32)
+            attempt = torch.where(escape, 0, attempt)
+            newton = newton & ~escape
+            finished = finished & ~escape
+            exhausted = stepping & ~finished & (attempt >= cap)
+            fallback = fallback | exhausted | stalled
+            finished = finished | exhausted | stalled
+        else:
+            finished = finished | stalled | (attempt >= cap)
+        running = running & ~finished
+    state.update(R=R, iterations=iterations, accepted=accepted, fallback=fallback)
 
 
-def fit_rotation_reference(
-    M: torch.Tensor,
+def fit_rotation_reference(    M: torch.Tensor,
     init: torch.Tensor | None = None,
     *,
     max_iter: int | None = None,
@@ -276,53 +325,39 @@ def fit_rotation_reference(
     check_all(M, init, max_iter, variant)
     out_dtype = M.dtype
     compute = torch.float32 if M.dtype in (torch.float16, torch.bfloat16) else M.dtype
+    tolerance = INIT_TOLERANCE[M.dtype]
     M = M.to(compute)
     batch = M.shape[:-2]
+    eps = torch.finfo(compute).eps
+    A, max_abs = _normalized(M)
+    finite = torch.isfinite(max_abs)  # amax propagates NaN
+    zero = max_abs == 0
+    bad_init = torch.zeros_like(finite)
     if init is not None:
         init = init.to(compute).expand(M.shape)
-    A, max_abs = _normalized(M)
-    finite = torch.isfinite(max_abs)
-    if init is not None:
-        finite = finite & torch.isfinite(init).flatten(-2).all(-1)
-        good_init = _is_rotation(init, INIT_ORTHONORMALITY[compute]) | ~finite
-        if M.device.type != "meta" and not bool(good_init.all()):
-            bad = int((~good_init).sum())
+        G = init.mT @ init
+        finite = finite & torch.isfinite(G.diagonal(dim1=-2, dim2=-1).sum(-1))
+        bad_init = finite & ~_is_rotation(init, G, tolerance)
+        if M.device.type != "meta" and bool(bad_init.any()):
             raise ValueError(
-                f"{OP_NAME}: init must hold rotations (|R^T R - I| <= {INIT_ORTHONORMALITY[compute]:g},"
-                f" det R > 0); {bad} of {good_init.numel()} matrices do not"
+                f"{OP_NAME}: init must hold rotations (|R^T R - I|_F < {tolerance:g} for {out_dtype},"
+                f" det R > 0); {int(bad_init.sum())} of {bad_init.numel()} matrices do not"
             )
-        A = torch.where(finite[..., None, None], A, torch.zeros_like(A))
-        eye = torch.eye(3, dtype=compute, device=M.device)
-        R = _reorthonormalize(torch.where(finite[..., None, None], init, eye))
+        R = init  # its small orthonormality error is removed at the end
     else:
-        A = torch.where(finite[..., None, None], A, torch.zeros_like(A))
-        C = start_candidates(compute, M.device)
-        best = torch.einsum("kij,...ij->...k", C, A).argmax(-1)  # first maximum on ties
-        R = C[best]
-    eps = torch.finfo(compute).eps
-    zero_matrix = max_abs == 0
-    status = torch.zeros(batch, dtype=torch.uint8, device=M.device)
-    # M = 0 needs no case of its own: its step is 0/0, so it keeps the warm
-    # start (else the first candidate, I) and is excluded from the fallback.
-    if max_iter is not None:
-        R, iterations, _, _ = _run_cayley_steps(A, R, max_iter, variant, False, finite, eps)
-    else:
-        R, iterations, converged, S = _run_cayley_steps(A, R, CONVERGED_CAP, variant, True, finite, eps)
-        accepted = converged & _is_maximum(S, MAX_CHECK_SLACK_EPS * eps)
-        for _ in range(MAX_ESCAPES):  # saddle escapes (csrc/kernel/saddle_escape.h)
-            restart = converged & ~accepted
-            R = torch.where(restart[..., None, None], R @ saddle_escape_rotation(R.mT @ A), R)
-            R, more, converged, S = _run_cayley_steps(A, R, CONVERGED_CAP, variant, True, restart, eps)
-            iterations = iterations + more
-            accepted = accepted | (restart & converged & _is_maximum(S, MAX_CHECK_SLACK_EPS * eps))
-        R = torch.where(accepted[..., None, None], _reorthonormalize(R), R)
-        use_fallback = ~accepted & ~zero_matrix & finite
-        R = torch.where(use_fallback[..., None, None], _horn_rotation(A), R)
-        status = torch.where(use_fallback, STATUS_FALLBACK, status).to(torch.uint8)
-    nan = torch.full_like(R, float("nan"))
-    R = torch.where(finite[..., None, None], R, nan)
+        R = _best_start_rotation(A)
+    A = torch.where(finite[..., None, None], A, torch.zeros_like(A))  # keep NaN out of eigh
+    state = {"A": A, "R": R, "running": finite & ~zero & ~bad_init}
+    _advance(state, variant, max_iter, eps)
+    R = state["R"]
+    R = _reorthonormalize(R)  # one Newton-Schulz step for every result (finish())
+    R = torch.where(state["fallback"][..., None, None], _horn_rotation(A), R)
+    usable = finite & ~bad_init
+    R = torch.where(usable[..., None, None], R, torch.full_like(R, float("nan")))
+    status = torch.where(state["fallback"], STATUS_FALLBACK, STATUS_CAYLEY)
+    status = torch.where(bad_init, STATUS_BAD_INIT, status)
     status = torch.where(finite, status, STATUS_NON_FINITE).to(torch.uint8)
-    iterations = torch.where(finite & ~zero_matrix, iterations, 0)
+    iterations = state["iterations"]
     R = R.to(out_dtype)
     if return_info:
         return R, iterations, status

@@ -27,11 +27,15 @@ namespace {
 template <typename T>
 struct Tolerances {
   static constexpr T eps = std::numeric_limits<T>::epsilon();
-  // Converged once a Newton step (c = tr S) has s = tan^2(theta / 2) < eps:
+  // Converged once an (almost) undamped step has s = tan^2(theta / 2) < eps:
   // Newton converges quadratically there, so the applied step leaves an
   // error of order eps. A damped step (c > tr S) can be tiny far from the
-  // optimum, so it never counts as convergence.
+  // optimum, so it counts only if its damping c - tr S is at most
+  // sqrt(eps) |tr S|, which moves it from the Newton step by at most
+  // sqrt(eps) |z| <= eps. (The conservative estimate is within ~eps |tr S|
+  // of tr S there, far from that bound; Gershgorin's slack is not.)
   static constexpr T converged = eps;
+  static constexpr T undamped = sizeof(T) == 4 ? T(3.4526698e-4) : T(1.4901161193847656e-8);  // sqrt(eps)
   // Below ~1 degree every variant switches to the Newton estimate c = tr S
   // (converged mode only). The conservative and Gershgorin estimates exceed
   // tr S at the optimum by up to their Gershgorin slack (Eq. 28), which turns
@@ -103,8 +107,7 @@ inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename 
     finite = L::mask_and(finite, L::is_finite(G(0, 0) + G(1, 1) + G(2, 2)));  // all entries finite
     const T tol = options.init_tolerance > 0 ? T(options.init_tolerance) : default_init_tolerance<T>();
     s.bad_init = L::mask_and(finite, L::mask_not(is_rotation<L>(*init, G, tol)));
-    // Warm starts fed back call after call would drift from orthonormal.
-    s.R = reorthonormalize(*init, G);
+    s.R = *init;  // its small orthonormality error is removed by finish()
   } else {
     s.R = best_start_rotation<L>(s.A);
   }
@@ -138,8 +141,9 @@ inline void advance(LaneState<L>& s, const FitOptions& options, int64_t budget) 
     s.R = select<L>(stepping, times(s.R, cayley_rotation(step)), s.R);
     s.iterations = s.iterations + L::select(stepping, one, zero);
     s.attempt_steps = s.attempt_steps + L::select(stepping, one, zero);
-    // A step of the Newton estimate (exactly c = tr S) below eps: converged.
-    Mask finished = L::mask_and(stepping, L::mask_and(L::eq(c, t), step.template smaller_than<L>(Tol::converged)));
+    // An undamped step below eps: converged.
+    const Mask undamped = L::mask_not(L::gt(c - t, V(Tol::undamped) * L::abs(t)));
+    Mask finished = L::mask_and(stepping, L::mask_and(undamped, step.template smaller_than<L>(Tol::converged)));
 
     if (converge) {
       s.newton = L::mask_or(s.newton, L::mask_and(stepping, step.template smaller_than<L>(Tol::newton_switch)));
@@ -171,15 +175,16 @@ inline void advance(LaneState<L>& s, const FitOptions& options, int64_t budget) 
   }
 }
 
-// The result of every lane that is not running: accepted lanes cleaned up by
-// one Newton-Schulz step (products of Cayley factors accumulate rounding),
-// fallback lanes solved exactly, unusable lanes NaN.
+// The result of every lane that is not running. One Newton-Schulz step
+// squares the orthonormality error of the warm start (which may have drifted
+// over many calls that fed results back) and of the product of Cayley factors
+// (which accumulates rounding), so every result is a rotation at the dtype's
+// precision. Fallback lanes are solved exactly, unusable lanes are NaN.
 template <typename L>
 inline Mat3<typename L::V> finish(const LaneState<L>& s) {
   using T = typename L::Scalar;
   using V = typename L::V;
-  Mat3<V> R = s.R;
-  if (L::any(s.accepted)) R = select<L>(s.accepted, reorthonormalize(s.R), s.R);
+  Mat3<V> R = reorthonormalize(s.R);
   if (L::any(s.fallback)) {
     for (int i = 0; i < L::width; ++i) {
       if (L::lane_set(s.fallback, i)) insert_lane<L>(R, i, horn_rotation(extract_lane<L>(s.A, i)));
