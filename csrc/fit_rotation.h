@@ -34,17 +34,24 @@ enum class FitStatus : uint8_t {
   kNonFinite = 3,  // M or init held NaN/Inf: the result is NaN
 };
 
-// Fits out[i] = argmax_R tr(R^T M[i]) for the (N, 3, 3) float or double
-// tensors M, init (optional, same shape) and out, with any strides. out may
-// alias M or init exactly. `iterations` (int32, N) and `status` (uint8, N)
-// are optional per-matrix diagnostics. Returns the number of matrices whose
-// warm start was not a rotation.
 // The kernel object fit_rotation_cpu uses now: "scalar", "default", "avx2"
 // or "avx512" (see cpu/dispatch.cpp).
 std::string cpu_kernel_name();
 
-int64_t fit_rotation_cpu(const at::Tensor& M, const at::Tensor* init,
-                         const at::Tensor& out, const FitOptions& options,
-                         const at::Tensor* iterations, const at::Tensor* status);
+// N row-major 3x3 matrices at `data`: entry (r, c) of matrix i is at
+// data + i * stride[0] + r * stride[1] + c * stride[2] (in elements).
+struct MatrixBatch {
+  void* data = nullptr;
+  int64_t stride[3] = {9, 3, 1};
+};
+
+// Fits out[i] = argmax_R tr(R^T M[i]) for n float or double matrices (dtype)
+// with any strides; init is optional (null: cold start). out may alias M or
+// init exactly. `iterations` (n int32) and `status` (n FitStatus bytes) are
+// optional per-matrix diagnostics. Returns the number of matrices whose warm
+// start was not a rotation.
+int64_t fit_rotation_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& M, const MatrixBatch* init,
+                         const MatrixBatch& out, const FitOptions& options, int32_t* iterations,
+                         uint8_t* status);
 
 }  // namespace torchrot

@@ -49,7 +49,7 @@ FitOptions parse_options(std::optional<int64_t> max_iter, c10::string_view varia
   return options;
 }
 
-// Checks M and init and returns init broadcast to M's shape (undefined if none).
+// Checks M and init; returns init (undefined if none), which broadcasts to M.
 at::Tensor checked_init(const at::Tensor& M, const std::optional<at::Tensor>& init) {
   check_matrix_arg(M, "M");
   if (!init.has_value() || !init->defined()) return at::Tensor();
@@ -63,7 +63,7 @@ at::Tensor checked_init(const at::Tensor& M, const std::optional<at::Tensor>& in
   const bool broadcastable = at::is_expandable_to(init_batch, m_batch);
   TORCH_CHECK(broadcastable, kOpName, ": init of shape ", init->sizes(),
               " must broadcast to M's shape ", M.sizes());
-  return init->expand(M.sizes());
+  return *init;
 }
 
 void check_out(const at::Tensor& M, const at::Tensor& out) {
@@ -77,8 +77,6 @@ void check_out(const at::Tensor& M, const at::Tensor& out) {
               ": out must not have overlapping elements (e.g. an expanded tensor)");
 }
 
-// Runs the kernel on (N, 3, 3) views, converting reduced precision to float32.
-// `out` has M's shape and dtype; it may alias M or init exactly.
 // Orthonormality tolerance of warm starts by the caller's dtype: reduced
 // precision rotations carry their own rounding (eps 1e-3 / 8e-3).
 double init_tolerance(at::ScalarType dtype) {
@@ -94,31 +92,65 @@ double init_tolerance(at::ScalarType dtype) {
   }
 }
 
+// (N, 3, 3) view of a tensor with the given (possibly broadcast) geometry,
+// without creating a tensor; nullopt if the batch dimensions cannot be
+// flattened into one stride.
+std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes, at::IntArrayRef strides,
+                                      int64_t n) {
+  const auto flat = at::detail::computeStride(sizes, strides, at::DimVector{n, 3, 3});
+  if (!flat.has_value()) return std::nullopt;
+  MatrixBatch view;
+  view.data = t.data_ptr();
+  for (int d = 0; d < 3; ++d) view.stride[d] = (*flat)[d];
+  return view;
+}
+
+MatrixBatch contiguous_view(const at::Tensor& contiguous) {
+  MatrixBatch view;
+  view.data = contiguous.data_ptr();
+  return view;
+}
+
+// Runs the kernel on (N, 3, 3) views of M, init (broadcast to M) and out,
+// converting reduced precision to float32. `out` has M's shape and dtype; it
+// may alias M or init exactly. Tensors are only materialised (copied) for
+// reduced precision and for layouts whose batch cannot be flattened.
 void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out, FitOptions options,
-             const at::Tensor* iterations, const at::Tensor* status) {
-  const bool reduced = M.scalar_type() == at::kHalf || M.scalar_type() == at::kBFloat16;
-  options.init_tolerance = init_tolerance(M.scalar_type());
+             int32_t* iterations, uint8_t* status) {
+  const at::ScalarType dtype = M.scalar_type();
+  const bool reduced = dtype == at::kHalf || dtype == at::kBFloat16;
+  const at::ScalarType compute = reduced ? at::kFloat : dtype;
+  options.init_tolerance = init_tolerance(dtype);
   const int64_t n = M.numel() / 9;
-  at::Tensor m3 = M.reshape({n, 3, 3});
-  at::Tensor init3 = init.defined() ? init.reshape({n, 3, 3}) : at::Tensor();
-  if (reduced) {
-    m3 = m3.to(at::kFloat);
-    if (init3.defined()) init3 = init3.to(at::kFloat);
+  if (n == 0) return;
+
+  at::Tensor m_keep, init_keep, out_keep;  // own any materialised copies
+  std::optional<MatrixBatch> m_view = reduced ? std::nullopt : batch_view(M, M.sizes(), M.strides(), n);
+  if (!m_view) {
+    m_keep = M.to(compute).contiguous();
+    m_view = contiguous_view(m_keep);
   }
-  // Write straight into out when it can be viewed as (N, 3, 3) in the compute
-  // dtype; otherwise into a temporary that is copied back.
-  at::Tensor out3;
-  if (!reduced) {
-    const auto strides = at::detail::computeStride(out.sizes(), out.strides(), at::IntArrayRef{n, 3, 3});
-    if (strides.has_value()) out3 = out.as_strided({n, 3, 3}, *strides);
+  std::optional<MatrixBatch> init_view;
+  if (init.defined()) {
+    if (!reduced) {
+      const auto geometry = at::inferExpandGeometry_dimvector(init.sizes(), init.strides(), M.sizes());
+      init_view = batch_view(init, geometry.sizes, geometry.strides, n);
+    }
+    if (!init_view) {
+      init_keep = init.expand(M.sizes()).to(compute).contiguous();
+      init_view = contiguous_view(init_keep);
+    }
   }
-  const bool direct = out3.defined();
-  if (!direct) out3 = at::empty({n, 3, 3}, m3.options());
-  const int64_t bad_inits = fit_rotation_cpu(m3, init3.defined() ? &init3 : nullptr, out3, options,
-                                             iterations, status);
-  if (!direct) out.copy_(out3.view(out.sizes()));
+  std::optional<MatrixBatch> out_view = reduced ? std::nullopt : batch_view(out, out.sizes(), out.strides(), n);
+  if (!out_view) {
+    out_keep = at::empty({n, 3, 3}, M.options().dtype(compute));
+    out_view = contiguous_view(out_keep);
+  }
+  const int64_t bad_inits = fit_rotation_cpu(compute, n, *m_view, init.defined() ? &*init_view : nullptr,
+                                             *out_view, options, iterations, status);
+  if (out_keep.defined()) out.copy_(out_keep.view(out.sizes()));
   TORCH_CHECK(bad_inits == 0, kOpName, ": init must hold rotations (|R^T R - I|_F < ",
-              options.init_tolerance, " for ", M.scalar_type(), ", det R > 0); ", bad_inits, " of ", n,
+              options.init_tolerance, " for ", dtype, ", det R > 0); ", bad_inits, " of ", n,
               " matrices do not (out has NaN in their place)");
 }
 
@@ -156,7 +188,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_cpu_op(
   const auto batch = M.sizes().slice(0, M.dim() - 2);
   at::Tensor iterations = at::empty(batch, M.options().dtype(at::kInt));
   at::Tensor status = at::empty(batch, M.options().dtype(at::kByte));
-  run_fit(M, init_b, out, options, &iterations, &status);
+  run_fit(M, init_b, out, options, iterations.data_ptr<int32_t>(), status.data_ptr<uint8_t>());
   return {out, iterations, status};
 }
 
@@ -171,12 +203,22 @@ TORCH_LIBRARY(torchrot, m) {
       "-> (Tensor R, Tensor iterations, Tensor status)");
   // Which CPU kernel object runs: "scalar", "default", "avx2" or "avx512".
   m.def("cpu_kernel() -> str", [] { return cpu_kernel_name(); });
+  // Operators that do nothing: the benchmark's yardsticks for the fixed cost
+  // of a custom-op call, with one argument, and with fit_rotation's
+  // signature and an (uninitialised) output of M's shape.
+  m.def("_empty_op(Tensor M) -> ()");
+  m.def(
+      "_empty_fit_rotation(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\") "
+      "-> Tensor");
 }
 
 TORCH_LIBRARY_IMPL(torchrot, CPU, m) {
   m.impl("fit_rotation", &fit_rotation_cpu_op);
   m.impl("fit_rotation_out", &fit_rotation_out_cpu_op);
   m.impl("fit_rotation_info", &fit_rotation_info_cpu_op);
+  m.impl("_empty_op", [](const at::Tensor&) {});
+  m.impl("_empty_fit_rotation", [](const at::Tensor& M, const std::optional<at::Tensor>&, std::optional<int64_t>,
+                                   c10::string_view) { return at::empty(M.sizes(), M.options()); });
 }
 
 }  // namespace torchrot

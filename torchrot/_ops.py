@@ -124,6 +124,16 @@ def _fit_rotation_out_fake(M, init, max_iter, variant, out):
     check_out(M, out)
 
 
+@torch.library.register_fake("torchrot::_empty_op")
+def _empty_op_fake(M):
+    return None
+
+
+@torch.library.register_fake("torchrot::_empty_fit_rotation")
+def _empty_fit_rotation_fake(M, init=None, max_iter=None, variant="conservative"):
+    return _empty_result(M)
+
+
 @torch.library.register_fake("torchrot::fit_rotation_info")
 def _fit_rotation_info_fake(M, init=None, max_iter=None, variant="conservative"):
     check_all(M, init, max_iter, variant)

@@ -1,32 +1,61 @@
 """CPU microbenchmark: ns per matrix and accuracy of every method, same run.
 
-Each row times one method on one data set with ``torch.utils.benchmark``
-(median of several blocked runs), beside ``torch.linalg.svd`` (special
-Procrustes) and a plain ``copy_`` of the input into a preallocated tensor (the
-memory floor), and reports the accuracy of the same call against float64 SVD.
-Data come from ``torchrot.testing``, the generators the tests use.
+Each row times one method on one data set of N matrices with
+``torch.utils.benchmark`` (the median of several ``blocked_autorange`` runs,
+each itself a median), beside ``torch.linalg.svd`` special Procrustes and a
+plain ``copy_`` of the input into a preallocated tensor (the memory floor)
+timed on the same data in the same run, and reports the accuracy of the same
+call against float64 SVD. Data come from ``torchrot.testing``, the generators
+the tests use, as (M, init) pairs of a local-global solver (``make_warm_start``).
+
+Two parts:
+  scaling: ns/matrix against N for the main methods (plotted log-log);
+  methods: every method at one N, for each data set, dtype and thread count,
+           torchrot at each instruction set, mode and variant.
 """
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import platform
 import statistics
 from dataclasses import asdict, dataclass, field
-from typing import Callable
+from typing import Callable, Iterator
 
 import torch
 import torch.utils.benchmark as tbench
 
 import torchrot
-from torchrot.testing import make_warm_start, rotation_errors
+from torchrot import baselines
+from torchrot.reference import rotation_svd
+from torchrot.testing import make_warm_start
 
-# Data sets of the default run: warm-startable solver-like data and cold data.
-DEFAULT_DATA = ("warm", "warm_cond1e5", "rot60", "uniform", "gaussian")
+Tensor = torch.Tensor
+ISAS = ("scalar", "default", "avx2", "avx512")
+VARIANTS = ("newton", "conservative", "gershgorin")
 WARM_DATA = ("warm", "warm_cond1e5")
+ACCURACY_SAMPLE = 1_000_000  # accuracy is measured on the first matrices of each data set
+SLOW_MAX_N = 1_000_000  # SVD-based baselines are not run above this N
+
+
+@dataclass
+class Method:
+    """A way to fit rotations, timed as ``run(M, init, out)``."""
+
+    name: str
+    run: Callable[[Tensor, Tensor, Tensor], Tensor]
+    group: str  # "floor", "baseline" or "torchrot"
+    isa: str | None = None  # torchrot kernel to force (TORCHROT_CPU_CAPABILITY)
+    warm_only: bool = False  # only meaningful where init is close (warm data)
+    max_n: int | None = None
+    float64_only: bool = False
+    diagnostics: bool = False  # report iteration counts and fallback rate
 
 
 @dataclass
 class Row:
+    part: str
     data: str
     method: str
     dtype: str
@@ -34,102 +63,223 @@ class Row:
     threads: int
     ns_per_matrix: float
     runs_ns: list = field(default_factory=list)
-    max_error: float | None = None       # max |R - R*|_F vs float64 SVD
+    isa: str | None = None
+    max_error: float | None = None  # max |R - R*|_F against float64 SVD
     median_error: float | None = None
     share_above_1e3: float | None = None  # share of matrices with |R - R*|_F > 1e-3
-    max_shortfall: float | None = None   # max relative objective shortfall
+    max_shortfall: float | None = None  # max (tr(R*^T M) - tr(R^T M)) / |M|_F
     mean_iterations: float | None = None
     fallback_rate: float | None = None
     speedup_vs_svd: float | None = None
     time_vs_copy: float | None = None
 
 
-@dataclass
-class Method:
-    name: str
-    run: Callable[[], torch.Tensor]  # writes/returns rotations for the data set
-    accuracy: bool = True
-    info: Callable[[], tuple] | None = None  # (iterations, status) per matrix
+def supported_isas() -> list[str]:
+    """torchrot kernels this CPU can run, lowest first."""
+    hardware = torch.backends.cpu.get_cpu_capability().lower()
+    top = ISAS.index(hardware) if hardware in ISAS else 1
+    return list(ISAS[: top + 1])
 
 
-def _median_seconds(fn: Callable[[], object], repeats: int, min_run_time: float) -> list[float]:
-    """Per-call seconds of ``repeats`` independent blocked_autorange medians."""
-    timer = tbench.Timer(stmt="fn()", globals={"fn": fn})
-    return [timer.blocked_autorange(min_run_time=min_run_time).median for _ in range(repeats)]
+@contextlib.contextmanager
+def forced_isa(isa: str | None) -> Iterator[None]:
+    """Runs torchrot with kernel ``isa`` (None: the best the CPU supports)."""
+    previous = os.environ.get("TORCHROT_CPU_CAPABILITY")
+    try:
+        if isa is None:
+            os.environ.pop("TORCHROT_CPU_CAPABILITY", None)
+        else:
+            os.environ["TORCHROT_CPU_CAPABILITY"] = isa
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop("TORCHROT_CPU_CAPABILITY", None)
+        else:
+            os.environ["TORCHROT_CPU_CAPABILITY"] = previous
 
 
-def _methods(M: torch.Tensor, init: torch.Tensor, warm: bool) -> list[Method]:
-    out = torch.empty_like(M)
-    methods = [
-        Method("copy_ (memory floor)", lambda: out.copy_(M), accuracy=False),
-        Method("torch.linalg.svd", lambda: torchrot.rotation_svd(M)),
-        Method(
-            "torchrot converged, cold",
-            lambda: torchrot.fit_rotation(M, out=out),
-            info=lambda: torchrot.fit_rotation_info(M)[1:],
-        ),
-        Method(
-            "torchrot converged, warm",
-            lambda: torchrot.fit_rotation(M, init, out=out),
-            info=lambda: torchrot.fit_rotation_info(M, init)[1:],
-        ),
-    ]
-    if warm:
-        for variant in ("newton", "conservative"):
-            methods.append(
-                Method(
-                    f"torchrot 1-step warm ({variant})",
-                    lambda variant=variant: torchrot.fit_rotation(M, init, max_iter=1, variant=variant, out=out),
-                )
-            )
+def _torchrot_methods(isa: str | None, label: str, variants: tuple[str, ...]) -> list[Method]:
+    methods = []
+    for variant in variants:
+        methods.append(Method(
+            f"torchrot 1-step warm, {variant}{label}",
+            lambda M, init, out, v=variant: torchrot.fit_rotation(M, init, max_iter=1, variant=v, out=out),
+            "torchrot", isa=isa, warm_only=True))
+    for variant in variants:
+        methods.append(Method(
+            f"torchrot converged cold, {variant}{label}",
+            lambda M, init, out, v=variant: torchrot.fit_rotation(M, variant=v, out=out),
+            "torchrot", isa=isa, diagnostics=True))
+    methods.append(Method(
+        f"torchrot converged warm{label}",
+        lambda M, init, out: torchrot.fit_rotation(M, init, out=out),
+        "torchrot", isa=isa, diagnostics=True))
     return methods
 
 
-def run_benchmark(
-    data: tuple[str, ...] = DEFAULT_DATA,
-    n: int = 100_000,
-    dtype: torch.dtype = torch.float32,
-    threads: int = 1,
-    repeats: int = 5,
-    min_run_time: float = 0.2,
-    log: Callable[[str], None] = print,
-) -> list[Row]:
-    """Times every method on every data set; returns one Row per (data, method)."""
+def all_methods(isas: list[str] | None = None, variants: tuple[str, ...] = VARIANTS,
+                first_touch: bool = True) -> list[Method]:
+    """The floor, the baselines that are installed, and torchrot per kernel."""
+    methods = [
+        Method("copy_ (memory floor)", lambda M, init, out: out.copy_(M), "floor"),
+        Method("torch.linalg.svd", lambda M, init, out: rotation_svd(M), "baseline", max_n=SLOW_MAX_N),
+    ]
+    if baselines.available("roma"):
+        methods.append(Method("roma.special_procrustes", lambda M, init, out: baselines.roma_special_procrustes(M),
+                              "baseline", max_n=SLOW_MAX_N))
+    if baselines.available("igl"):
+        methods.append(Method("igl.fit_rotations (double)", lambda M, init, out: baselines.igl_fit_rotations(M),
+                              "baseline", max_n=SLOW_MAX_N))
+        methods.append(Method("igl.fit_rotations (single)",
+                              lambda M, init, out: baselines.igl_fit_rotations(M, single_precision=True),
+                              "baseline", max_n=SLOW_MAX_N))
+    if isas is None:
+        methods += _torchrot_methods(None, "", variants)
+    else:
+        for isa in isas:
+            methods += _torchrot_methods(isa, f" [{isa}]", variants)
+    if first_touch:
+        # Without out=: every call allocates a new output and pays its first-touch page faults.
+        methods.append(Method("torchrot 1-step warm, conservative, new output",
+                              lambda M, init, out: torchrot.fit_rotation(M, init, max_iter=1), "torchrot",
+                              warm_only=True))
+    return methods
+
+
+def _median_seconds(fn: Callable[[], object], repeats: int, min_run_time: float, threads: int = 1) -> list[float]:
+    """Per-call seconds of ``repeats`` independent ``blocked_autorange`` medians
+    (the Timer sets the thread count itself: it defaults to 1)."""
+    timer = tbench.Timer(stmt="fn()", globals={"fn": fn}, num_threads=threads)
+    return [timer.blocked_autorange(min_run_time=min_run_time).median for _ in range(repeats)]
+
+
+def _accuracy(R: Tensor, M64: Tensor, R_star: Tensor) -> dict:
+    dist = (R.double() - R_star).norm(dim=(-2, -1))
+    norm = M64.norm(dim=(-2, -1)).clamp_min(torch.finfo(torch.float64).tiny)
+    shortfall = ((R_star - R.double()) * M64).sum((-2, -1)) / norm
+    return {
+        "max_error": dist.max().item(),
+        "median_error": dist.median().item(),
+        "share_above_1e3": (dist > 1e-3).double().mean().item(),
+        "max_shortfall": shortfall.max().item(),
+    }
+
+
+def _applicable(method: Method, data: str, n: int, dtype: torch.dtype) -> bool:
+    if method.warm_only and data not in WARM_DATA:
+        return False
+    if method.max_n is not None and n > method.max_n:
+        return False
+    return not (method.float64_only and dtype != torch.float64)
+
+
+def run_case(part: str, data: str, n: int, dtype: torch.dtype, threads: int, methods: list[Method],
+             repeats: int, min_run_time: float, log: Callable[[str], None] = print) -> list[Row]:
+    """Times every applicable method on one data set; SVD and copy included."""
+    M, init = make_warm_start(data, n, seed=0, dtype=dtype)
+    out = torch.empty_like(M)
+    k = min(n, ACCURACY_SAMPLE)
+    M64 = M[:k].double()
+    R_star = rotation_svd(M64)
+    rows: list[Row] = []
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(threads)
-    rows: list[Row] = []
     try:
-        for name in data:
-            M, init = make_warm_start(name, n, seed=0, dtype=dtype)
-            M64 = M.double()
-            data_rows: list[Row] = []
-            for method in _methods(M, init, warm=name in WARM_DATA):
-                runs = _median_seconds(method.run, repeats, min_run_time)
-                row = Row(name, method.name, str(dtype).replace("torch.", ""), n, threads,
-                          ns_per_matrix=statistics.median(runs) / n * 1e9,
-                          runs_ns=[r / n * 1e9 for r in runs])
-                if method.accuracy:
-                    err = rotation_errors(method.run(), M64)
-                    dist = err["distance"]
-                    row.max_error = dist.max().item()
-                    row.median_error = dist.median().item()
-                    row.share_above_1e3 = (dist > 1e-3).double().mean().item()
-                    row.max_shortfall = err["shortfall"].max().item()
-                if method.info is not None:
-                    iterations, status = method.info()
-                    row.mean_iterations = iterations.double().mean().item()
-                    row.fallback_rate = (status == 1).double().mean().item()
-                data_rows.append(row)
-                log(f"  {name:14s} {method.name:34s} {row.ns_per_matrix:10.1f} ns/matrix")
-            svd_ns = next(r.ns_per_matrix for r in data_rows if r.method == "torch.linalg.svd")
-            copy_ns = next(r.ns_per_matrix for r in data_rows if r.method.startswith("copy_"))
-            for row in data_rows:
-                row.speedup_vs_svd = svd_ns / row.ns_per_matrix
-                row.time_vs_copy = row.ns_per_matrix / copy_ns
-            rows.extend(data_rows)
+        for method in methods:
+            if not _applicable(method, data, n, dtype):
+                continue
+            with forced_isa(method.isa):
+                runs = _median_seconds(lambda: method.run(M, init, out), repeats, min_run_time, threads)
+                R = method.run(M, init, out)
+                info = torchrot.fit_rotation_info(M[:k], init[:k] if "warm" in method.name else None) \
+                    if method.diagnostics else None
+            row = Row(part, data, method.name, str(dtype).replace("torch.", ""), n, threads,
+                      ns_per_matrix=statistics.median(runs) / n * 1e9, runs_ns=[r / n * 1e9 for r in runs],
+                      isa=method.isa)
+            if method.group != "floor":
+                for key, value in _accuracy(R[:k], M64, R_star).items():
+                    setattr(row, key, value)
+            if info is not None:
+                row.mean_iterations = info.iterations.double().mean().item()
+                row.fallback_rate = (info.status == 1).double().mean().item()
+            rows.append(row)
+            log(f"  {part:7s} {data:13s} {row.dtype:7s} N={n:<9d} {threads}T  {method.name:48s} "
+                f"{row.ns_per_matrix:10.2f} ns/matrix")
     finally:
         torch.set_num_threads(previous_threads)
+    by_name = {r.method: r for r in rows}
+    svd = by_name.get("torch.linalg.svd")
+    copy = by_name.get("copy_ (memory floor)")
+    for row in rows:
+        row.speedup_vs_svd = svd.ns_per_matrix / row.ns_per_matrix if svd else None
+        row.time_vs_copy = row.ns_per_matrix / copy.ns_per_matrix if copy else None
     return rows
+
+
+@dataclass
+class Plan:
+    """What to run: the scaling sweep and the method matrix."""
+
+    scaling_data: tuple[str, ...] = ("warm", "uniform")
+    scaling_n: tuple[int, ...] = (1_000, 10_000, 100_000)
+    methods_data: tuple[str, ...] = ("warm", "warm_cond1e5", "rot60", "uniform")
+    methods_n: int = 100_000
+    dtypes: tuple[torch.dtype, ...] = (torch.float32,)
+    threads: tuple[int, ...] = (1, 2)
+    all_isas: bool = False
+    variants: tuple[str, ...] = ("newton", "conservative")
+    repeats: int = 5
+    min_run_time: float = 0.1
+
+
+QUICK = Plan()
+FULL = Plan(scaling_n=(1_000, 10_000, 100_000, 1_000_000, 10_000_000), methods_n=1_000_000,
+            dtypes=(torch.float32, torch.float64), all_isas=True, variants=VARIANTS, repeats=5, min_run_time=0.2)
+
+
+def run_plan(plan: Plan, log: Callable[[str], None] = print) -> list[Row]:
+    rows: list[Row] = []
+    scaling = [m for m in all_methods(None, ("conservative",), first_touch=False)
+               if m.group != "torchrot" or "newton" not in m.name]
+    for data in plan.scaling_data:
+        for n in plan.scaling_n:
+            rows += run_case("scaling", data, n, torch.float32, 1, scaling, plan.repeats, plan.min_run_time, log)
+    methods = all_methods(supported_isas() if plan.all_isas else None, plan.variants)
+    for dtype in plan.dtypes:
+        for threads in plan.threads:
+            for data in plan.methods_data:
+                rows += run_case("methods", data, plan.methods_n, dtype, threads, methods, plan.repeats,
+                                 plan.min_run_time, log)
+    return rows
+
+
+def single_matrix_overhead(min_run_time: float = 0.5) -> dict[str, float]:
+    """Microseconds per call on one (3, 3) matrix, beside empty custom ops."""
+    M = torch.randn(3, 3)
+    R = torchrot.fit_rotation(M)
+    out = torch.empty(3, 3)
+    calls = {
+        "empty custom op (1 argument)": lambda: torch.ops.torchrot._empty_op(M),
+        "empty custom op (fit_rotation's signature and output)":
+            lambda: torch.ops.torchrot._empty_fit_rotation(M, None, None, "conservative"),
+        "torchrot.fit_rotation(M)": lambda: torchrot.fit_rotation(M),
+        "torchrot.fit_rotation(M, out=out)": lambda: torchrot.fit_rotation(M, out=out),
+        "torchrot.fit_rotation(M, R, max_iter=1, out=R)": lambda: torchrot.fit_rotation(M, R, max_iter=1, out=R),
+        "torch.linalg.svd special Procrustes": lambda: rotation_svd(M),
+    }
+    return {name: statistics.median(_median_seconds(fn, 3, min_run_time)) * 1e6 for name, fn in calls.items()}
+
+
+def machine_info() -> dict:
+    return {
+        "torch": torch.__version__,
+        "torchrot": torchrot.__version__,
+        "torchrot_kernel": torch.ops.torchrot.cpu_kernel(),
+        "aten_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "cores": os.cpu_count(),
+        "processor": platform.processor() or platform.machine(),
+        "python": platform.python_version(),
+    }
 
 
 def _fmt(x: float | None, spec: str) -> str:
@@ -137,29 +287,66 @@ def _fmt(x: float | None, spec: str) -> str:
 
 
 def format_table(rows: list[Row]) -> str:
-    """Markdown table of the rows (ns/matrix beside SVD and copy, accuracy)."""
-    header = ("| data | method | ns/matrix | x SVD | x copy | max err | median err | >1e-3 | "
-              "max shortfall | iters | fallback |")
+    """Markdown table: ns/matrix beside SVD and copy of the same run, accuracy."""
+    header = ("| data | dtype | N | threads | method | ns/matrix | speedup vs SVD | time vs copy | max err | "
+              "median err | share >1e-3 | max shortfall | mean iters | fallback |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
         lines.append(
-            f"| {r.data} | {r.method} | {r.ns_per_matrix:.1f} | {r.speedup_vs_svd:.1f} | {r.time_vs_copy:.2f} | "
-            f"{_fmt(r.max_error, '.1e')} | {_fmt(r.median_error, '.1e')} | {_fmt(r.share_above_1e3, '.2%')} | "
-            f"{_fmt(r.max_shortfall, '.1e')} | {_fmt(r.mean_iterations, '.2f')} | {_fmt(r.fallback_rate, '.2%')} |"
+            f"| {r.data} | {r.dtype} | {r.n:.0e} | {r.threads} | {r.method} | {r.ns_per_matrix:.2f} | "
+            f"{_fmt(r.speedup_vs_svd, '.1f')} | {_fmt(r.time_vs_copy, '.2f')} | {_fmt(r.max_error, '.1e')} | "
+            f"{_fmt(r.median_error, '.1e')} | {_fmt(r.share_above_1e3, '.2%')} | {_fmt(r.max_shortfall, '.1e')} | "
+            f"{_fmt(r.mean_iterations, '.2f')} | {_fmt(r.fallback_rate, '.3%')} |"
         )
     return "\n".join(lines)
 
 
-def machine_info() -> dict:
-    return {
-        "torch": torch.__version__,
-        "torchrot": torchrot.__version__,
-        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
-        "processor": platform.processor() or platform.machine(),
-        "python": platform.python_version(),
-    }
+def plot_scaling(rows: list[Row], path: str) -> None:
+    """PNG: ns/matrix against N (log-log), one line per method, a panel per data set."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scaling = [r for r in rows if r.part == "scaling"]
+    data_sets = sorted({r.data for r in scaling}, key=[r.data for r in scaling].index)
+    fig, axes = plt.subplots(1, len(data_sets), figsize=(6.5 * len(data_sets), 5), squeeze=False)
+    for ax, data in zip(axes[0], data_sets):
+        methods = sorted({r.method for r in scaling if r.data == data},
+                         key=[r.method for r in scaling].index)
+        for method in methods:
+            pts = sorted((r.n, r.ns_per_matrix) for r in scaling if r.data == data and r.method == method)
+            style = "--" if method.startswith("copy_") else "-"
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], style, marker="o", label=method)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("N (matrices per call)")
+        ax.set_ylabel("ns per matrix (median)")
+        ax.set_title(f"{data} data, float32, 1 thread")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"torchrot vs baselines ({machine_info()['aten_cpu_capability']}, "
+                 f"{machine_info()['processor']})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
-def write_json(rows: list[Row], path: str) -> None:
-    with open(path, "w") as f:
-        json.dump({"machine": machine_info(), "rows": [asdict(r) for r in rows]}, f, indent=1)
+def write_results(rows: list[Row], overhead: dict[str, float], folder: str) -> list[str]:
+    """bench.json, bench.md and bench_scaling.png in ``folder``; returns the paths."""
+    os.makedirs(folder, exist_ok=True)
+    paths = [os.path.join(folder, name) for name in ("bench.json", "bench.md", "bench_scaling.png")]
+    with open(paths[0], "w") as f:
+        json.dump({"machine": machine_info(), "single_matrix_us": overhead, "rows": [asdict(r) for r in rows]},
+                  f, indent=1)
+    with open(paths[1], "w") as f:
+        f.write(f"# torchrot benchmark\n\nMachine: {machine_info()}\n\n")
+        f.write("## Single-matrix call (microseconds)\n\n")
+        for name, us in overhead.items():
+            f.write(f"- {name}: {us:.2f}\n")
+        for part in ("scaling", "methods"):
+            part_rows = [r for r in rows if r.part == part]
+            if part_rows:
+                f.write(f"\n## {part}\n\n{format_table(part_rows)}\n")
+    plot_scaling(rows, paths[2])
+    return paths

@@ -64,9 +64,9 @@ const cpu::KernelTable& kernels(Isa isa) {
 }
 
 template <typename T>
-void fill_matrix_view(const at::Tensor& t, const T*& data, int64_t stride[3]) {
-  data = t.data_ptr<T>();
-  for (int d = 0; d < 3; ++d) stride[d] = t.stride(d);
+void fill_view(const MatrixBatch& batch, const T*& data, int64_t stride[3]) {
+  data = static_cast<const T*>(batch.data);
+  for (int d = 0; d < 3; ++d) stride[d] = batch.stride[d];
 }
 
 int64_t run_kernel(const cpu::KernelTable& table, const cpu::BatchArgs<float>& args) {
@@ -81,21 +81,22 @@ int64_t run_kernel(const cpu::KernelTable& table, const cpu::BatchArgs<double>& 
 
 std::string cpu_kernel_name() { return kernels(selected_isa()).name; }
 
-int64_t fit_rotation_cpu(const at::Tensor& M, const at::Tensor* init, const at::Tensor& out,
-                         const FitOptions& options, const at::Tensor* iterations, const at::Tensor* status) {
+int64_t fit_rotation_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& M, const MatrixBatch* init,
+                         const MatrixBatch& out, const FitOptions& options, int32_t* iterations,
+                         uint8_t* status) {
   const cpu::KernelTable& table = kernels(selected_isa());
   int64_t bad_inits = 0;
-  AT_DISPATCH_FLOATING_TYPES(M.scalar_type(), "torchrot_fit_rotation_cpu", [&] {
+  AT_DISPATCH_FLOATING_TYPES(dtype, "torchrot_fit_rotation_cpu", [&] {
     cpu::BatchArgs<scalar_t> args{};
-    fill_matrix_view(M, args.M, args.m_stride);
-    if (init != nullptr) fill_matrix_view(*init, args.init, args.init_stride);
+    fill_view(M, args.M, args.m_stride);
+    if (init != nullptr) fill_view(*init, args.init, args.init_stride);
     const scalar_t* out_data = nullptr;
-    fill_matrix_view(out, out_data, args.out_stride);
-    args.out = out.data_ptr<scalar_t>();
-    args.n = M.size(0);
+    fill_view(out, out_data, args.out_stride);
+    args.out = const_cast<scalar_t*>(out_data);
+    args.n = n;
     args.options = options;
-    args.iterations = iterations != nullptr ? iterations->data_ptr<int32_t>() : nullptr;
-    args.status = status != nullptr ? status->data_ptr<uint8_t>() : nullptr;
+    args.iterations = iterations;
+    args.status = status;
     bad_inits = run_kernel(table, args);
   });
   return bad_inits;
