@@ -348,5 +348,9 @@ def write_results(rows: list[Row], overhead: dict[str, float], folder: str) -> l
             part_rows = [r for r in rows if r.part == part]
             if part_rows:
                 f.write(f"\n## {part}\n\n{format_table(part_rows)}\n")
-    plot_scaling(rows, paths[2])
+    try:
+        plot_scaling(rows, paths[2])
+    except ImportError:
+        print("matplotlib is not installed (pip install 'torchrot[bench]'): no plot written")
+        paths.pop()
     return paths
