@@ -64,7 +64,8 @@ def fit_rotation(
         variant: how each step estimates the maximal objective c (paper
             Sec. 4.2): ``"newton"`` (c = tr M), ``"conservative"``
             (c = sqrt(tr(M)^2 + m^T m)) or ``"gershgorin"`` (Eqs. 27-28). With
-            ``max_iter=None``, steps below ~1 degree switch to Newton.
+            ``max_iter=None``, Gershgorin hands over to the conservative
+            estimate after two steps (its slack makes convergence linear).
         out: optional tensor of M's shape, dtype and device to write into; it
             may be ``init`` or ``M`` itself (an in-place warm-start update).
 
@@ -83,6 +84,8 @@ def fit_rotation(
 
     Autograd is not supported yet (no gradient flows through this op).
     """
+    if max_iter is not None and type(max_iter) is not int:  # bool is an int to the op's schema
+        raise TypeError(f"torchrot.fit_rotation: max_iter must be None or an int >= 1, got {max_iter!r}")
     if out is None:
         return torch.ops.torchrot.fit_rotation(M, init, max_iter, variant)
     torch.ops.torchrot.fit_rotation_out(M, init, max_iter, variant, out)
@@ -98,10 +101,21 @@ def fit_rotation_info(
 ) -> FitInfo:
     """:func:`fit_rotation` plus per-matrix diagnostics.
 
-    Same arguments, convention (R maximises tr(R^T M); M = sum w y x^T gives
-    R x ~ y) and errors as :func:`fit_rotation`. Returns a :class:`FitInfo`
-    ``(R, iterations, status)``; iterations and status have M's batch shape.
+    Args: as :func:`fit_rotation` (M ``(..., 3, 3)`` float32/float64, float16/
+    bfloat16 computed in float32; init, max_iter, variant), without ``out``.
+    Convention: R (det +1) maximises tr(R^T M); for centred point sets
+    M = sum_i w_i y_i x_i^T gives R x_i ~ y_i (column vectors).
+
+    Returns:
+        :class:`FitInfo` ``(R, iterations, status)``: R ``(..., 3, 3)`` in M's
+        dtype; iterations ``(...)`` int32, the Cayley steps each matrix took;
+        status ``(...)`` uint8: 0 the Cayley iteration, 1 the Horn/Jacobi
+        fallback (converged mode), 3 NaN/Inf in M or init (R is NaN).
+
+    Raises: the errors of :func:`fit_rotation`.
     """
+    if max_iter is not None and type(max_iter) is not int:
+        raise TypeError(f"torchrot.fit_rotation: max_iter must be None or an int >= 1, got {max_iter!r}")
     return FitInfo(*torch.ops.torchrot.fit_rotation_info(M, init, max_iter, variant))
 
 

@@ -50,7 +50,7 @@ class Method:
     warm_only: bool = False  # only meaningful where init is close (warm data)
     max_n: int | None = None
     float64_only: bool = False
-    diagnostics: bool = False  # report iteration counts and fallback rate
+    diagnostics: dict | None = None  # fit_rotation_info arguments: report iterations and fallbacks
 
 
 @dataclass
@@ -109,11 +109,11 @@ def _torchrot_methods(isa: str | None, label: str, variants: tuple[str, ...]) ->
         methods.append(Method(
             f"torchrot converged cold, {variant}{label}",
             lambda M, init, out, v=variant: torchrot.fit_rotation(M, variant=v, out=out),
-            "torchrot", isa=isa, diagnostics=True))
+            "torchrot", isa=isa, diagnostics={"variant": variant, "warm": False}))
     methods.append(Method(
         f"torchrot converged warm{label}",
         lambda M, init, out: torchrot.fit_rotation(M, init, out=out),
-        "torchrot", isa=isa, diagnostics=True))
+        "torchrot", isa=isa, diagnostics={"variant": "conservative", "warm": True}))
     return methods
 
 
@@ -191,8 +191,10 @@ def run_case(part: str, data: str, n: int, dtype: torch.dtype, threads: int, met
             with forced_isa(method.isa):
                 runs = _median_seconds(lambda: method.run(M, init, out), repeats, min_run_time, threads)
                 R = method.run(M, init, out)
-                info = torchrot.fit_rotation_info(M[:k], init[:k] if "warm" in method.name else None) \
-                    if method.diagnostics else None
+                info = None
+                if method.diagnostics is not None:
+                    start = init[:k] if method.diagnostics["warm"] else None
+                    info = torchrot.fit_rotation_info(M[:k], start, variant=method.diagnostics["variant"])
             row = Row(part, data, method.name, str(dtype).replace("torch.", ""), n, threads,
                       ns_per_matrix=statistics.median(runs) / n * 1e9, runs_ns=[r / n * 1e9 for r in runs],
                       isa=method.isa)

@@ -21,7 +21,8 @@ from torchrot._checks import OP_NAME, check_all
 # Mirrors kernel::Tolerances (csrc/kernel/fit_rotation_impl.h).
 CONVERGED_CAP = 12
 MAX_ESCAPES = 2
-NEWTON_SWITCH = 1e-4
+ESTIMATE_SWITCH = 1e-4
+GERSHGORIN_STEPS = 2
 MAX_CHECK_SLACK_EPS = 4.0
 # |R^T R - I|_F a warm start may have, by the caller's dtype (csrc/ops.cpp).
 INIT_TOLERANCE = {torch.float16: 1e-2, torch.bfloat16: 5e-2, torch.float32: 1e-4, torch.float64: 1e-7}
@@ -253,7 +254,7 @@ def _advance(state: dict, variant: str, max_iter: int | None, eps: float) -> Non
     converge = max_iter is None
     running = state["running"]
     zeros = torch.zeros_like(running)
-    newton, accepted, fallback = zeros, zeros, zeros
+    switched, accepted, fallback = zeros, zeros, zeros
     iterations = torch.zeros(running.shape, dtype=torch.int32, device=A.device)
     attempt = torch.zeros_like(iterations)
     escapes = torch.zeros_like(iterations)
@@ -262,9 +263,10 @@ def _advance(state: dict, variant: str, max_iter: int | None, eps: float) -> Non
     for _ in range(budget):
         S = R.mT @ A
         t = _trace(S)
-        c = _objective_estimate(S, t, (_skew_vector(S) ** 2).sum(-1), variant)
-        if converge:
-            c = torch.where(newton, t, c)
+        mm = (_skew_vector(S) ** 2).sum(-1)
+        c = _objective_estimate(S, t, mm, variant)
+        if converge and variant == "gershgorin":  # Tolerances::estimate_switch
+            c = torch.where(switched, _objective_estimate(S, t, mm, "conservative"), c)
         w, d = _cayley_fraction(S, c)
         ww, dd = (w * w).sum(-1), d * d
         valid = (dd > 0) & torch.isfinite(dd + ww)
@@ -277,7 +279,8 @@ def _advance(state: dict, variant: str, max_iter: int | None, eps: float) -> Non
         undamped = ~(c - t > math.sqrt(eps) * t.abs())  # see Tolerances::undamped
         finished = stepping & undamped & (ww < eps * dd)
         if converge:
-            newton = newton | (stepping & (ww < NEWTON_SWITCH * dd))
+            switch_now = (ww < ESTIMATE_SWITCH * dd) | (attempt >= GERSHGORIN_STEPS)
+            switched = switched | (stepping & switch_now)
             at_maximum = finished & _is_maximum(S, MAX_CHECK_SLACK_EPS * eps)
             accepted = accepted | at_maximum
             saddle = finished & ~at_maximum
@@ -286,7 +289,7 @@ def _advance(state: dict, variant: str, max_iter: int | None, eps: float) -> Non
             R = torch.where(escape[..., None, None], R @ saddle_escape_rotation(R.mT @ A), R)
             escapes = escapes + escape.to(torch.int32)
             attempt = torch.where(escape, 0, attempt)
-            newton = newton & ~escape
+            switched = switched & ~escape
             finished = finished & ~escape
             exhausted = stepping & ~finished & (attempt >= cap)
             fallback = fallback | exhausted | stalled

@@ -97,7 +97,7 @@ struct SavedLane {
   int64_t index;
   T A[9], R[9];
   T iterations, attempt_steps, escapes;
-  bool newton;
+  bool switched;
 };
 
 // Saves the lanes of `s` that are still running (of the first `count`),
@@ -125,7 +125,7 @@ inline void save_running_lanes(const kernel::LaneState<L>& s, int count, const i
     lane.iterations = iterations[j];
     lane.attempt_steps = attempt[j];
     lane.escapes = escapes[j];
-    lane.newton = L::lane_set(s.newton, j);
+    lane.switched = L::lane_set(s.switched, j);
     saved.push_back(lane);
   }
 }
@@ -135,7 +135,7 @@ template <typename L>
 inline kernel::LaneState<L> restore_block(const SavedLane<typename L::Scalar>* saved, int count) {
   using T = typename L::Scalar;
   alignas(64) T A[9][L::width], R[9][L::width], iterations[L::width], attempt[L::width],
-      escapes[L::width], newton[L::width], running[L::width];
+      escapes[L::width], switched[L::width], running[L::width];
   for (int j = 0; j < L::width; ++j) {
     const bool live = j < count;
     for (int k = 0; k < 9; ++k) {
@@ -145,7 +145,7 @@ inline kernel::LaneState<L> restore_block(const SavedLane<typename L::Scalar>* s
     iterations[j] = live ? saved[j].iterations : T(0);
     attempt[j] = live ? saved[j].attempt_steps : T(0);
     escapes[j] = live ? saved[j].escapes : T(0);
-    newton[j] = live && saved[j].newton ? T(1) : T(0);
+    switched[j] = live && saved[j].switched ? T(1) : T(0);
     running[j] = live ? T(1) : T(0);
   }
   kernel::LaneState<L> s;
@@ -157,7 +157,7 @@ inline kernel::LaneState<L> restore_block(const SavedLane<typename L::Scalar>* s
   s.iterations = L::load(iterations);
   s.attempt_steps = L::load(attempt);
   s.escapes = L::load(escapes);
-  s.newton = L::gt(L::load(newton), zero);
+  s.switched = L::gt(L::load(switched), zero);
   s.running = L::gt(L::load(running), zero);
   s.accepted = s.fallback = s.bad_init = s.non_finite = L::all_false();
   return s;

@@ -36,12 +36,16 @@ struct Tolerances {
   // of tr S there, far from that bound; Gershgorin's slack is not.)
   static constexpr T converged = eps;
   static constexpr T undamped = sizeof(T) == 4 ? T(3.4526698e-4) : T(1.4901161193847656e-8);  // sqrt(eps)
-  // Below ~1 degree every variant switches to the Newton estimate c = tr S
-  // (converged mode only). The conservative and Gershgorin estimates exceed
-  // tr S at the optimum by up to their Gershgorin slack (Eq. 28), which turns
-  // quadratic convergence into linear convergence; Newton has no such slack
-  // and, this close to a maximum, no risk of overshooting (Sec. 4.2).
-  static constexpr T newton_switch = T(1e-4);
+  // In converged mode the Gershgorin variant switches to the conservative
+  // estimate after its first two steps (per start or escape) or after a step
+  // below ~1 degree. Gershgorin's bound (Eq. 28) is meant for the large first
+  // steps; it stays above tr S at the optimum by its slack, which makes
+  // convergence linear, and so slow on anisotropic M that a quarter of the
+  // warm data ran out of steps (measured). The conservative estimate exceeds
+  // tr S only by ~m.m / (2 tr S), which vanishes quadratically at the
+  // optimum, while it still damps steps that are not small (Sec. 4.2).
+  static constexpr T estimate_switch = T(1e-4);
+  static constexpr int gershgorin_steps = 2;
   // Slack of the second-order check: the objective may fall short of the
   // maximum by at most 2 * slack * max |M_ij|.
   static constexpr T max_check_slack = T(4) * eps;
@@ -68,7 +72,7 @@ struct LaneState {
   V iterations;      // Cayley steps taken
   V attempt_steps;   // steps since the start or the last saddle escape
   V escapes;         // saddle escapes taken
-  Mask newton;       // converged mode: switched to the Newton estimate
+  Mask switched;     // converged mode: Gershgorin switched to the conservative estimate
   Mask running;      // still iterating
   Mask accepted;     // converged mode: verified maximum
   Mask fallback;     // converged mode: needs the Horn/Jacobi fallback
@@ -87,7 +91,7 @@ inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename 
   using Mask = typename L::Mask;
   LaneState<L> s;
   s.iterations = s.attempt_steps = s.escapes = V(0);
-  s.newton = s.accepted = s.fallback = s.bad_init = L::all_false();
+  s.switched = s.accepted = s.fallback = s.bad_init = L::all_false();
 
   V max_abs(0);  // NaN if any entry is NaN
   for (int k = 0; k < 9; ++k) max_abs = L::max(max_abs, L::abs(M.a[k]));
@@ -131,7 +135,9 @@ inline void advance(LaneState<L>& s, const FitOptions& options, int64_t budget) 
     const Mat3<V> S = transpose_times(s.R, s.A);
     const V t = trace(S);
     V c = objective_estimate<L>(S, options.variant);
-    if (converge && options.variant != Variant::kNewton) c = L::select(s.newton, t, c);
+    if (converge && options.variant == Variant::kGershgorin) {
+      c = L::select(s.switched, objective_estimate<L>(S, Variant::kConservative), c);
+    }
     const CayleyStep<V> step = cayley_step(S, c);
 
     // A singular H (or a non-finite step) takes no step.
@@ -146,7 +152,9 @@ inline void advance(LaneState<L>& s, const FitOptions& options, int64_t budget) 
     Mask finished = L::mask_and(stepping, L::mask_and(undamped, step.template smaller_than<L>(Tol::converged)));
 
     if (converge) {
-      s.newton = L::mask_or(s.newton, L::mask_and(stepping, step.template smaller_than<L>(Tol::newton_switch)));
+      const Mask switch_now = L::mask_or(step.template smaller_than<L>(Tol::estimate_switch),
+                                         L::mask_not(L::lt(s.attempt_steps, V(Tol::gershgorin_steps))));
+      s.switched = L::mask_or(s.switched, L::mask_and(stepping, switch_now));
       if (L::any(finished)) {
         // The maximum, or a saddle (S of this last tiny step is symmetric
         // up to it)? Saddles are escaped by a half-turn and iterate again.
@@ -159,7 +167,7 @@ inline void advance(LaneState<L>& s, const FitOptions& options, int64_t budget) 
           s.R = select<L>(escape, times(s.R, saddle_escape_rotation<L>(transpose_times(s.R, s.A))), s.R);
           s.escapes = s.escapes + L::select(escape, one, zero);
           s.attempt_steps = L::select(escape, zero, s.attempt_steps);
-          s.newton = L::mask_and(s.newton, L::mask_not(escape));
+          s.switched = L::mask_and(s.switched, L::mask_not(escape));
           finished = L::mask_and(finished, L::mask_not(escape));
         }
       }
