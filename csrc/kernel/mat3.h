@@ -44,13 +44,6 @@ inline Mat3<V> times(const Mat3<V>& A, const Mat3<V>& B) {
   return C;
 }
 
-template <typename V>
-inline Mat3<V> identity3() {
-  Mat3<V> I;
-  for (int i = 0; i < 9; ++i) I.a[i] = V(i % 4 == 0 ? 1 : 0);
-  return I;
-}
-
 // R^T R, computed once per symmetric pair.
 template <typename V>
 inline Mat3<V> gram(const Mat3<V>& R) {
