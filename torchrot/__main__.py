@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
                                        "installed baselines (roma, libigl); the default quick plan takes a "
                                        "few minutes, --full the complete grid (N up to 1e7, every kernel, "
                                        "both dtypes).")
-    bench.add_argument("--full", action="store_true", help="the complete grid (about 20 minutes on 2 cores)")
+    bench.add_argument("--full", action="store_true", help="the complete grid (about 40 minutes on 2 cores)")
     bench.add_argument("--n", type=_positive_int, help="matrices per data set in the method tables")
     bench.add_argument("--scaling-n", type=_positive_int, nargs="+", help="N values of the scaling sweep")
     bench.add_argument("--data", type=_data_set, nargs="+", help="data sets of the method tables")
