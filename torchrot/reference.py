@@ -133,12 +133,7 @@ def cayley_rotation(z: torch.Tensor) -> torch.Tensor:
     Returns:
         ``(..., 3, 3)`` rotations.
     """
-    s = (z * z).sum(-1)[..., None, None]
-    x, y, w = z.unbind(-1)
-    zero = torch.zeros_like(x)
-    cross = torch.stack([zero, -w, y, w, zero, -x, -y, x, zero], -1).reshape(z.shape + (3,))
-    eye = torch.eye(3, dtype=z.dtype, device=z.device)
-    return ((1 - s) * eye + 2 * z.unsqueeze(-1) * z.unsqueeze(-2) + 2 * cross) / (1 + s)
+    return _fraction_rotation(-z, torch.ones_like(z[..., 0]))  # z = -w / d with d = 1
 
 
 def quaternion_rotation(q: torch.Tensor) -> torch.Tensor:
@@ -254,7 +249,7 @@ def _advance(state: dict, variant: str, max_iter: int | None, eps: float) -> Non
     converge = max_iter is None
     running = state["running"]
     zeros = torch.zeros_like(running)
-    switched, accepted, fallback = zeros, zeros, zeros
+    switched, fallback = zeros, zeros
     iterations = torch.zeros(running.shape, dtype=torch.int32, device=A.device)
     attempt = torch.zeros_like(iterations)
     escapes = torch.zeros_like(iterations)
@@ -282,7 +277,6 @@ def _advance(state: dict, variant: str, max_iter: int | None, eps: float) -> Non
             switch_now = (ww < ESTIMATE_SWITCH * dd) | (attempt >= GERSHGORIN_STEPS)
             switched = switched | (stepping & switch_now)
             at_maximum = finished & _is_maximum(S, MAX_CHECK_SLACK_EPS * eps)
-            accepted = accepted | at_maximum
             saddle = finished & ~at_maximum
             escape = saddle & (escapes < MAX_ESCAPES)
             fallback = fallback | (saddle & ~escape)
@@ -297,10 +291,11 @@ def _advance(state: dict, variant: str, max_iter: int | None, eps: float) -> Non
         else:
             finished = finished | stalled | (attempt >= cap)
         running = running & ~finished
-    state.update(R=R, iterations=iterations, accepted=accepted, fallback=fallback)
+    state.update(R=R, iterations=iterations, fallback=fallback)
 
 
-def fit_rotation_reference(    M: torch.Tensor,
+def fit_rotation_reference(
+    M: torch.Tensor,
     init: torch.Tensor | None = None,
     *,
     max_iter: int | None = None,

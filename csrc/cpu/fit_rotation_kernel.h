@@ -159,7 +159,7 @@ inline kernel::LaneState<L> restore_block(const SavedLane<typename L::Scalar>* s
   s.escapes = L::load(escapes);
   s.switched = L::gt(L::load(switched), zero);
   s.running = L::gt(L::load(running), zero);
-  s.accepted = s.fallback = s.bad_init = s.non_finite = L::all_false();
+  s.fallback = s.bad_init = s.non_finite = L::all_false();
   return s;
 }
 

@@ -74,7 +74,6 @@ struct LaneState {
   V escapes;         // saddle escapes taken
   Mask switched;     // converged mode: Gershgorin switched to the conservative estimate
   Mask running;      // still iterating
-  Mask accepted;     // converged mode: verified maximum
   Mask fallback;     // converged mode: needs the Horn/Jacobi fallback
   Mask bad_init;     // the warm start was finite but not a rotation
   Mask non_finite;   // M or init held NaN/Inf
@@ -91,7 +90,7 @@ inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename 
   using Mask = typename L::Mask;
   LaneState<L> s;
   s.iterations = s.attempt_steps = s.escapes = V(0);
-  s.switched = s.accepted = s.fallback = s.bad_init = L::all_false();
+  s.switched = s.fallback = s.bad_init = L::all_false();
 
   V max_abs(0);  // NaN if any entry is NaN
   for (int k = 0; k < 9; ++k) max_abs = L::max(max_abs, L::abs(M.a[k]));
@@ -159,7 +158,6 @@ inline void advance(LaneState<L>& s, const FitOptions& options, int64_t budget) 
         // The maximum, or a saddle (S of this last tiny step is symmetric
         // up to it)? Saddles are escaped by a half-turn and iterate again.
         const Mask at_maximum = L::mask_and(finished, is_maximum<L>(S, Tol::max_check_slack));
-        s.accepted = L::mask_or(s.accepted, at_maximum);
         const Mask saddle = L::mask_and(finished, L::mask_not(at_maximum));
         const Mask escape = L::mask_and(saddle, L::lt(s.escapes, V(Tol::max_escapes)));
         s.fallback = L::mask_or(s.fallback, L::mask_and(saddle, L::mask_not(escape)));
