@@ -9,12 +9,17 @@ import torch  # noqa: F401  (loads libtorch before the extension links to it)
 from torchrot import _C  # noqa: F401  (registers torch.ops.torchrot.*)
 from torchrot._ops import FitInfo, fit_rotation, fit_rotation_info
 from torchrot.reference import fit_rotation_reference, rotation_svd
+from torchrot.registration import RigidTransform, rigid_registration
+from torchrot import nn  # noqa: E402  (after fit_rotation: nn calls torchrot.fit_rotation)
 
 __all__ = [
     "FitInfo",
     "fit_rotation",
     "fit_rotation_info",
     "fit_rotation_reference",
+    "nn",
+    "RigidTransform",
+    "rigid_registration",
     "rotation_svd",
 ]
 __version__ = "0.1.0"

@@ -1,0 +1,346 @@
+"""torchrot.rigid_registration: recovery of known transforms, agreement with a
+float64 SVD/Umeyama reference, weights, broadcasting, dtypes, errors, and (once
+fit_rotation has autograd) gradients."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchrot
+from torchrot.testing import random_rotations
+
+TOL = {torch.float32: 2e-5, torch.float64: 1e-11}
+
+
+def umeyama_reference(x, y, weights=None, scale=False):
+    """Independent float64 reference: Umeyama (1991) by SVD of the weighted
+    cross-covariance Sigma = sum p_i (y_i - my)(x_i - mx)^T. Shapes as
+    rigid_registration; returns (R, t, s) in float64. Differentiable by autograd."""
+    x, y = x.double(), y.double()
+    if weights is None:
+        weights = torch.ones(x.shape[:-1], dtype=torch.float64)
+    p = weights.double() / weights.double().sum(-1, keepdim=True)
+    mx = (p.unsqueeze(-1) * x).sum(-2)
+    my = (p.unsqueeze(-1) * y).sum(-2)
+    xc, yc = x - mx.unsqueeze(-2), y - my.unsqueeze(-2)
+    sigma = torch.einsum("...n,...ni,...nj->...ij", p, yc, xc)
+    U, S, Vh = torch.linalg.svd(sigma)
+    d = torch.sign(torch.linalg.det(U @ Vh))
+    ones = torch.ones_like(d)
+    D = torch.stack([ones, ones, d], -1)
+    R = U @ torch.diag_embed(D) @ Vh
+    if scale:
+        s = (S * D).sum(-1) / (p * xc.square().sum(-1)).sum(-1)
+    else:
+        s = torch.ones_like(d)
+    t = my - s.unsqueeze(-1) * (R @ mx.unsqueeze(-1)).squeeze(-1)
+    return R, t, s
+
+
+def make_problem(batch=(), n=40, seed=0, noise=0.0, dtype=torch.float64, with_scale=True):
+    """Points x, the true (R, t, s) and y = s R x + t (+ Gaussian noise)."""
+    gen = torch.Generator().manual_seed(seed)
+    count = math.prod(batch)
+    R = random_rotations(count, gen).reshape(*batch, 3, 3)
+    t = torch.randn(*batch, 3, generator=gen, dtype=torch.float64) * 3
+    s = (torch.rand(batch, generator=gen, dtype=torch.float64) * 2 + 0.5) if with_scale \
+        else torch.ones(batch, dtype=torch.float64)
+    x = torch.randn(*batch, n, 3, generator=gen, dtype=torch.float64) * torch.tensor([3.0, 2.0, 1.0]) + 1.0
+    y = s[..., None, None] * (x @ R.mT) + t.unsqueeze(-2)
+    y = y + noise * torch.randn(y.shape, generator=gen, dtype=torch.float64)
+    return x.to(dtype), y.to(dtype), (R, t, s)
+
+
+def assert_close(actual, expected, tol, what):
+    err = (actual.double() - expected.double()).abs().max().item()
+    assert err <= tol, f"{what}: max error {err:.3g} > {tol:g}"
+
+
+def require_fit_rotation_autograd():
+    """Skip (at test time) while torchrot.fit_rotation has no autograd: its output
+    then has no grad_fn, or PyTorch's not-implemented fallback
+    (WarnNotImplemented, which yields no gradient)."""
+    M = torch.randn(3, 3, dtype=torch.float64).requires_grad_()
+    grad_fn = torchrot.fit_rotation(M).grad_fn
+    if grad_fn is None or "NotImplemented" in grad_fn.name():
+        pytest.skip("torchrot.fit_rotation has no autograd yet (no backward registered)")
+
+
+# ---------------------------------------------------------------------------
+# Values
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scale", [False, True])
+def test_recovers_known_transform_noiseless(dtype, scale):
+    x, y, (R, t, s) = make_problem((6,), seed=1, dtype=dtype, with_scale=scale)
+    out = torchrot.rigid_registration(x, y, scale=scale)
+    assert isinstance(out, torchrot.RigidTransform)
+    assert out.R.shape == (6, 3, 3) and out.t.shape == (6, 3) and out.s.shape == (6,)
+    assert out.R.dtype == out.t.dtype == out.s.dtype == dtype
+    tol = TOL[dtype]
+    assert_close(out.R, R, tol, "R")
+    assert_close(out.s, s, tol, "s")
+    assert_close(out.t, t, 20 * tol, "t")  # |t| ~ 3 and |x| ~ 4: absolute error scales with them
+    if not scale:
+        assert torch.equal(out.s, torch.ones(6, dtype=dtype))
+
+
+@pytest.mark.parametrize("scale", [False, True])
+def test_matches_umeyama_reference_on_noisy_data(dtype, scale):
+    x, y, _ = make_problem((20,), n=25, seed=2, noise=0.5, dtype=dtype)
+    weights = torch.rand(20, 25, generator=torch.Generator().manual_seed(3), dtype=dtype) + 0.1
+    out = torchrot.rigid_registration(x, y, weights, scale=scale)
+    R, t, s = umeyama_reference(x, y, weights, scale)
+    tol = TOL[dtype] * 10
+    assert_close(out.R, R, tol, "R")
+    assert_close(out.t, t, 20 * tol, "t")
+    assert_close(out.s, s, tol, "s")
+
+
+def test_result_minimises_the_weighted_cost():
+    """The returned (R, t, s) beats nearby perturbations of itself."""
+    x, y, _ = make_problem((), n=30, seed=4, noise=1.0)
+    w = torch.rand(30, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+
+    def cost(R, t, s):
+        return (w * (s * x @ R.mT + t - y).square().sum(-1)).sum()
+
+    R, t, s = torchrot.rigid_registration(x, y, w, scale=True)
+    best = cost(R, t, s)
+    gen = torch.Generator().manual_seed(6)
+    for _ in range(20):
+        dR = torchrot.fit_rotation(torch.eye(3, dtype=torch.float64) + 1e-3 * torch.randn(3, 3, generator=gen,
+                                                                                              dtype=torch.float64))
+        dt = 1e-3 * torch.randn(3, generator=gen, dtype=torch.float64)
+        ds = 1e-3 * torch.randn((), generator=gen, dtype=torch.float64)
+        assert cost(dR @ R, t + dt, s + ds) > best
+
+
+def test_reflection_data_gives_a_rotation():
+    """y a mirror image of x: the best *rotation* (det +1), as Umeyama's reference."""
+    x, _, _ = make_problem((), n=30, seed=7)
+    y = x * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)
+    out = torchrot.rigid_registration(x, y, scale=True)
+    R, t, s = umeyama_reference(x, y, scale=True)
+    assert torch.linalg.det(out.R).item() == pytest.approx(1.0, abs=1e-12)
+    assert_close(out.R, R, 1e-10, "R")
+    assert_close(out.t, t, 1e-10, "t")
+    assert_close(out.s, s, 1e-10, "s")
+
+
+# ---------------------------------------------------------------------------
+# Weights
+# ---------------------------------------------------------------------------
+
+
+def test_zero_weights_drop_points(dtype):
+    x, y, (R, t, s) = make_problem((), n=20, seed=8, dtype=dtype)
+    # wreck some points and give them zero weight
+    y_bad = y.clone()
+    y_bad[::3] += 100.0
+    w = torch.ones(20, dtype=dtype)
+    w[::3] = 0
+    out = torchrot.rigid_registration(x, y_bad, w, scale=True)
+    subset = torchrot.rigid_registration(x[w > 0], y_bad[w > 0], scale=True)
+    tol = TOL[dtype] * 10
+    for a, b, name in zip(out, subset, "Rts"):
+        assert_close(a, b, 20 * tol, name)
+    assert_close(out.R, R, tol, "R")
+
+
+def test_weights_are_not_squared_and_scale_free():
+    """Weight 2 on a point == the point listed twice; w and 10 w agree."""
+    x, y, _ = make_problem((), n=12, seed=9, noise=0.3)
+    w = torch.ones(12, dtype=torch.float64)
+    w[0] = 2.0
+    doubled = torchrot.rigid_registration(torch.cat([x, x[:1]]), torch.cat([y, y[:1]]), scale=True)
+    weighted = torchrot.rigid_registration(x, y, w, scale=True)
+    scaled = torchrot.rigid_registration(x, y, 10 * w, scale=True)
+    for a, b, c, name in zip(weighted, doubled, scaled, "Rts"):
+        assert_close(a, b, 1e-11, name)
+        assert_close(a, c, 1e-11, name)
+
+
+def test_exactly_three_points():
+    x, y, (R, t, s) = make_problem((), n=3, seed=10)
+    out = torchrot.rigid_registration(x, y, scale=True)
+    assert_close(out.R, R, 1e-10, "R")
+    assert_close(out.s, s, 1e-10, "s")
+
+
+# ---------------------------------------------------------------------------
+# Shapes, dtypes, options
+# ---------------------------------------------------------------------------
+
+
+def test_batch_dimensions_broadcast():
+    gen = torch.Generator().manual_seed(11)
+    x = torch.randn(2, 1, 10, 3, generator=gen, dtype=torch.float64)
+    y = torch.randn(3, 10, 3, generator=gen, dtype=torch.float64)
+    w = torch.rand(10, generator=gen, dtype=torch.float64) + 0.1
+    out = torchrot.rigid_registration(x, y, w, scale=True)
+    assert out.R.shape == (2, 3, 3, 3) and out.t.shape == (2, 3, 3) and out.s.shape == (2, 3)
+    for i in range(2):
+        for j in range(3):
+            one = torchrot.rigid_registration(x[i, 0], y[j], w, scale=True)
+            for a, b, name in zip(out, one, "Rts"):
+                assert_close(a[i, j], b, 1e-12, name)
+    # weights carrying the batch dimensions
+    wb = torch.rand(2, 3, 10, generator=gen, dtype=torch.float64) + 0.1
+    out = torchrot.rigid_registration(x[:, 0, None], y, wb)
+    R, t, _ = umeyama_reference(x[:, 0, None].expand(2, 3, 10, 3), y.expand(2, 3, 10, 3), wb)
+    assert_close(out.R, R, 1e-11, "R")
+    assert_close(out.t, t, 1e-10, "t")
+
+
+def test_non_contiguous_inputs_and_no_input_modification():
+    x, y, _ = make_problem((4,), n=16, seed=12, noise=0.1)
+    xt = x.transpose(-1, -2).contiguous().transpose(-1, -2)  # same values, other strides
+    w = torch.rand(16, 4, dtype=torch.float64).T + 0.1
+    copies = [t.clone() for t in (xt, y, w)]
+    out = torchrot.rigid_registration(xt, y[:, :, :], w, scale=True)
+    ref = torchrot.rigid_registration(x, y, w.contiguous(), scale=True)
+    for a, b, name in zip(out, ref, "Rts"):
+        assert_close(a, b, 1e-13, name)
+    for before, after in zip(copies, (xt, y, w)):
+        assert torch.equal(before, after)
+
+
+@pytest.mark.parametrize("low", [torch.float16, torch.bfloat16], ids=str)
+def test_half_precision_is_computed_in_float32(low):
+    x, y, (R, _, _) = make_problem((3,), n=20, seed=13, with_scale=False)
+    out = torchrot.rigid_registration(x.to(low), y.to(low))
+    assert out.R.dtype == out.t.dtype == out.s.dtype == low
+    ref = torchrot.rigid_registration(x.to(low).float(), y.to(low).float())
+    assert torch.equal(out.R, ref.R.to(low))
+
+
+def test_autocast_keeps_float32():
+    x, y, _ = make_problem((5,), n=20, seed=14, noise=0.2, dtype=torch.float32)
+    plain = torchrot.rigid_registration(x, y, scale=True)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        auto = torchrot.rigid_registration(x, y, scale=True)
+    for a, b, name in zip(auto, plain, "Rts"):
+        assert a.dtype == torch.float32
+        assert_close(a, b, 1e-6, name)
+
+
+def test_init_is_forwarded_as_warm_start(monkeypatch):
+    x, y, (R, _, _) = make_problem((8,), n=20, seed=15, with_scale=False)
+    cold = torchrot.rigid_registration(x, y)
+    seen = []
+    fit = torchrot.fit_rotation
+
+    def recording_fit(M, init=None, **options):
+        seen.append(init)
+        return fit(M, init, **options)
+
+    monkeypatch.setattr(torchrot, "fit_rotation", recording_fit)
+    warm = torchrot.rigid_registration(x, y, init=R)
+    assert seen and seen[-1] is R
+    assert_close(warm.R, cold.R, 1e-12, "R")
+    with pytest.raises((ValueError, RuntimeError), match="init"):
+        torchrot.rigid_registration(x, y, init=torch.eye(3, dtype=torch.float64).expand(3, 3, 3))
+
+
+def test_compiles_fullgraph():
+    x, y, _ = make_problem((4,), n=10, seed=16, noise=0.1)
+    w = torch.rand(4, 10, dtype=torch.float64) + 0.1
+    compiled = torch.compile(torchrot.rigid_registration, backend="aot_eager", fullgraph=True)
+    out = compiled(x, y, w, scale=True)
+    ref = torchrot.rigid_registration(x, y, w, scale=True)
+    for a, b, name in zip(out, ref, "Rts"):
+        assert_close(a, b, 1e-12, name)
+
+
+# ---------------------------------------------------------------------------
+# Errors
+# ---------------------------------------------------------------------------
+
+_X = torch.randn(5, 10, 3, dtype=torch.float64)
+_W = torch.ones(5, 10, dtype=torch.float64)
+
+ERRORS = [
+    ("x not a tensor", lambda: torchrot.rigid_registration(_X.tolist(), _X), TypeError, "x must be a torch.Tensor"),
+    ("y wrong last dim", lambda: torchrot.rigid_registration(_X, _X[..., :2]), ValueError, r"y must have shape \(\.\.\., N, 3\)"),
+    ("x 1-D", lambda: torchrot.rigid_registration(_X[0, 0], _X), ValueError, r"x must have shape"),
+    ("N differs", lambda: torchrot.rigid_registration(_X, _X[:, :9]), ValueError, "same number of points"),
+    ("integer x", lambda: torchrot.rigid_registration(_X.long(), _X.long()), TypeError, "x must be float32"),
+    ("dtypes differ", lambda: torchrot.rigid_registration(_X, _X.float()), TypeError, "y must have x's dtype"),
+    ("batch mismatch", lambda: torchrot.rigid_registration(_X, _X[:4]), ValueError, "batch dimensions must broadcast"),
+    ("weights batch mismatch", lambda: torchrot.rigid_registration(_X, _X, _W[:3]), ValueError, "batch dimensions"),
+    ("weights wrong N", lambda: torchrot.rigid_registration(_X, _X, _W[:, :9]), ValueError, r"weights must have shape \(\.\.\., N\)"),
+    ("weights dtype", lambda: torchrot.rigid_registration(_X, _X, _W.float()), TypeError, "weights must have x's dtype"),
+    ("weights not a tensor", lambda: torchrot.rigid_registration(_X, _X, [1.0] * 10), TypeError, "weights must be None or a torch.Tensor"),
+    ("negative weight", lambda: torchrot.rigid_registration(_X, _X, _W - 2 * (torch.arange(10) == 4)), ValueError, "weights must be >= 0"),
+    ("all-zero weights", lambda: torchrot.rigid_registration(_X, _X, _W * (torch.arange(5) != 3)[:, None]), ValueError,
+     r"problem \(3,\).*all weights are zero"),
+    ("two effective points", lambda: torchrot.rigid_registration(_X, _X, _W * (torch.arange(10) < 2)), ValueError,
+     r"at least 3 points of nonzero weight.*only 2 point"),
+    ("two points", lambda: torchrot.rigid_registration(_X[:, :2], _X[:, :2]), ValueError, "at least 3 points, got N = 2"),
+    ("scale not bool", lambda: torchrot.rigid_registration(_X, _X, scale=1), TypeError, "scale must be a bool"),
+    ("coincident x with scale", lambda: torchrot.rigid_registration(_X[:, :1].expand(5, 10, 3), _X, scale=True),
+     ValueError, "must not all coincide"),
+]
+
+
+@pytest.mark.parametrize("what, call, error, message", ERRORS, ids=[e[0] for e in ERRORS])
+def test_errors(what, call, error, message):
+    with pytest.raises(error, match=message):
+        call()
+
+
+def test_errors_name_the_function():
+    with pytest.raises(ValueError, match=r"^torchrot\.rigid_registration: "):
+        torchrot.rigid_registration(_X, _X[:, :9])
+
+
+def test_nan_stays_in_its_problem():
+    x, y, (R, _, _) = make_problem((3,), n=10, seed=17, with_scale=False)
+    y = y.clone()
+    y[1, 4, 0] = float("nan")
+    out = torchrot.rigid_registration(x, y)
+    assert torch.isnan(out.R[1]).all() and torch.isnan(out.t[1]).all()
+    assert_close(out.R[[0, 2]], R[[0, 2]], 1e-12, "R of the other problems")
+
+
+# ---------------------------------------------------------------------------
+# Gradients (need fit_rotation's autograd)
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scale", [False, True])
+def test_gradcheck(scale):
+    require_fit_rotation_autograd()
+    x, y, _ = make_problem((2,), n=6, seed=18, noise=0.3)
+    w = torch.rand(2, 6, generator=torch.Generator().manual_seed(19), dtype=torch.float64) + 0.5
+    inputs = tuple(t.clone().requires_grad_() for t in (x, y, w))
+
+    def fn(x, y, w):
+        return tuple(torchrot.rigid_registration(x, y, w, scale=scale))
+
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [False, True])
+def test_gradients_match_svd_reference(scale):
+    require_fit_rotation_autograd()
+    x, y, _ = make_problem((16,), n=20, seed=20, noise=0.5)
+    w = torch.rand(16, 20, generator=torch.Generator().manual_seed(21), dtype=torch.float64) + 0.1
+    gen = torch.Generator().manual_seed(22)
+    probes = [torch.randn(16, *shape, generator=gen, dtype=torch.float64) for shape in ((3, 3), (3,), ())]
+
+    def grads(fn):
+        leaves = [t.clone().requires_grad_() for t in (x, y, w)]
+        outputs = fn(*leaves, scale=scale)
+        loss = sum((o * p).sum() for o, p in zip(outputs, probes))
+        return torch.autograd.grad(loss, leaves)
+
+    ours = grads(torchrot.rigid_registration)
+    reference = grads(umeyama_reference)
+    for a, b, name in zip(ours, reference, ("x", "y", "weights")):
+        assert torch.isfinite(a).all()
+        assert_close(a, b, 1e-9 * max(1.0, b.abs().max().item()), f"d/d{name}")

@@ -1,0 +1,216 @@
+"""Weighted rigid (and similarity) registration of point sets: Kabsch / Umeyama.
+
+``rigid_registration(x, y, w)`` finds the rotation R, translation t and
+(optionally) scale s minimising
+
+    sum_i w_i || s R x_i + t - y_i ||^2            (column vectors: R x ~ y)
+
+in closed form (Umeyama, "Least-squares estimation of transformation parameters
+between two point patterns", IEEE TPAMI 1991): with the normalised weights
+p_i = w_i / sum_j w_j and the weighted centroids x̄ = sum p_i x_i, ȳ = sum p_i y_i,
+
+    M   = sum_i p_i (y_i - ȳ)(x_i - x̄)^T          (3x3 cross-covariance)
+    R   = fit_rotation(M)                           (maximises tr(R^T M))
+    s   = tr(R^T M) / sum_i p_i ||x_i - x̄||^2      (Umeyama's scale; 1 if scale=False)
+    t   = ȳ - s R x̄
+
+R comes from :func:`torchrot.fit_rotation`, so the whole map is differentiable in
+x, y and the weights wherever fit_rotation is.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+import torchrot
+
+_NAME = "torchrot.rigid_registration"
+_COMPUTE_IN_FLOAT32 = (torch.float16, torch.bfloat16)
+_SUPPORTED_DTYPES = (torch.float32, torch.float64, *_COMPUTE_IN_FLOAT32)
+MIN_POINTS = 3
+
+
+class RigidTransform(NamedTuple):
+    """Result of :func:`rigid_registration`: ``y ~ s R x + t`` (column vectors).
+
+    R: ``(..., 3, 3)`` rotations (det +1).
+    t: ``(..., 3)`` translations.
+    s: ``(...)`` scales (ones when ``scale=False``).
+    """
+
+    R: torch.Tensor
+    t: torch.Tensor
+    s: torch.Tensor
+
+
+def rigid_registration(
+    x: torch.Tensor,
+    y: torch.Tensor,
+    weights: torch.Tensor | None = None,
+    *,
+    scale: bool = False,
+    init: torch.Tensor | None = None,
+) -> RigidTransform:
+    """Rigid (or similarity) transform minimising sum_i w_i ||s R x_i + t - y_i||^2.
+
+    Column-vector convention: the result maps x onto y, ``y_i ~ s R x_i + t``.
+    R is :func:`torchrot.fit_rotation` of the weighted cross-covariance
+    ``M = sum_i p_i (y_i - ȳ)(x_i - x̄)^T`` (p = w / sum w, x̄ and ȳ the weighted
+    centroids), i.e. the Kabsch solution; with ``scale=True`` s is Umeyama's
+    ``tr(R^T M) / sum_i p_i ||x_i - x̄||^2``.
+
+    Args:
+        x: ``(..., N, 3)`` source points.
+        y: ``(..., N, 3)`` target points, same N; batch dimensions of x, y and
+            weights broadcast against each other.
+        weights: optional ``(..., N)`` non-negative weights (used as given, not
+            squared); a zero weight drops its point. ``None``: all ones.
+        scale: also fit a uniform scale s (Umeyama). ``False``: s = 1.
+        init: optional ``(..., 3, 3)`` rotations broadcastable to the batch,
+            forwarded to :func:`torchrot.fit_rotation` as its warm start (e.g.
+            the previous frame's R). No gradient flows to init.
+
+    Returns:
+        :class:`RigidTransform` ``(R, t, s)`` with R ``(..., 3, 3)``, t
+        ``(..., 3)`` and s ``(...)`` over the broadcast batch shape, in the
+        inputs' dtype (float16/bfloat16 are computed in float32). Differentiable
+        in x, y and weights (through fit_rotation's backward); nothing is
+        modified in place. Where the rotation is not unique (all points
+        collinear, ...) fit_rotation's deterministic maximiser is returned; NaN
+        in a problem's inputs gives NaN in that problem's outputs.
+
+    Raises:
+        TypeError: x, y or weights not a tensor, not float32/float64/float16/
+            bfloat16, or of different dtypes; scale not a bool.
+        ValueError: shapes other than ``(..., N, 3)`` / ``(..., N)``, different
+            N, batch dimensions that do not broadcast, tensors on different
+            devices; negative weights; a problem with fewer than 3 points of
+            nonzero weight (all-zero weights included); with ``scale=True``, a
+            problem whose weighted points all coincide (s undefined). The value
+            checks are skipped inside torch.compile and torch.func transforms,
+            where they would need data-dependent control flow.
+    """
+    _check_arguments(x, y, weights, scale)
+    if _values_readable(x, y, weights):
+        _check_point_counts(x, weights)
+    dtype = x.dtype
+    compute = torch.float32 if dtype in _COMPUTE_IN_FLOAT32 else dtype
+    # Autocast would run the covariance products in bf16; they need the input precision.
+    with torch.autocast(x.device.type, enabled=False):
+        R, t, s = _solve(x.to(compute), y.to(compute), None if weights is None else weights.to(compute),
+                         scale, init)
+    return RigidTransform(R.to(dtype), t.to(dtype), s.to(dtype))
+
+
+def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Umeyama's closed form; shapes as in :func:`rigid_registration`."""
+    if weights is None:
+        p = torch.full((x.shape[-2],), 1.0 / x.shape[-2], dtype=x.dtype, device=x.device)
+    else:
+        p = weights / weights.sum(-1, keepdim=True)
+    p_row = p.unsqueeze(-2)  # (..., 1, N)
+    x_mean = (p_row @ x).squeeze(-2)  # (..., 3)
+    y_mean = (p_row @ y).squeeze(-2)
+    xc = x - x_mean.unsqueeze(-2)
+    yc = y - y_mean.unsqueeze(-2)
+    # M = sum_i p_i yc_i xc_i^T: (..., 3, N) @ (..., N, 3).
+    M = (yc.mT * p_row) @ xc
+    R = torchrot.fit_rotation(M, init)
+    if scale:
+        variance_x = (p * xc.square().sum(-1)).sum(-1)
+        _check_spread(variance_x, (p * x.square().sum(-1)).sum(-1))
+        # tr(R^T M) at the maximum: the (sign-corrected) sum of M's singular values.
+        s = (R * M).sum((-2, -1)) / variance_x
+    else:
+        s = torch.ones(M.shape[:-2], dtype=M.dtype, device=M.device)
+    t = y_mean - s.unsqueeze(-1) * (R @ x_mean.unsqueeze(-1)).squeeze(-1)
+    return R, t, s
+
+
+def _check_arguments(x, y, weights, scale) -> None:
+    for name, value in (("x", x), ("y", y)):
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(f"{_NAME}: {name} must be a torch.Tensor, got {type(value).__name__}")
+        if value.dim() < 2 or value.shape[-1] != 3:
+            raise ValueError(f"{_NAME}: {name} must have shape (..., N, 3), got {list(value.shape)}")
+        if value.dtype not in _SUPPORTED_DTYPES:
+            raise TypeError(f"{_NAME}: {name} must be float32, float64, float16 or bfloat16, got {value.dtype}")
+    if y.dtype != x.dtype:
+        raise TypeError(f"{_NAME}: y must have x's dtype ({x.dtype}), got {y.dtype}")
+    if y.device != x.device:
+        raise ValueError(f"{_NAME}: y must be on x's device ({x.device}), got {y.device}")
+    n = x.shape[-2]
+    if y.shape[-2] != n:
+        raise ValueError(f"{_NAME}: x and y must have the same number of points N, got x {list(x.shape)} "
+                         f"and y {list(y.shape)}")
+    batches = {"x": x.shape[:-2], "y": y.shape[:-2]}
+    if weights is not None:
+        if not isinstance(weights, torch.Tensor):
+            raise TypeError(f"{_NAME}: weights must be None or a torch.Tensor, got {type(weights).__name__}")
+        if weights.dim() < 1 or weights.shape[-1] != n:
+            raise ValueError(f"{_NAME}: weights must have shape (..., N) with N = {n} (the points of x), "
+                             f"got {list(weights.shape)}")
+        if weights.dtype != x.dtype:
+            raise TypeError(f"{_NAME}: weights must have x's dtype ({x.dtype}), got {weights.dtype}")
+        if weights.device != x.device:
+            raise ValueError(f"{_NAME}: weights must be on x's device ({x.device}), got {weights.device}")
+        batches["weights"] = weights.shape[:-1]
+    try:
+        torch.broadcast_shapes(*batches.values())
+    except RuntimeError:
+        shapes = ", ".join(f"{name} {list(shape)}" for name, shape in batches.items())
+        raise ValueError(f"{_NAME}: the batch dimensions must broadcast, got {shapes}") from None
+    if not isinstance(scale, bool):
+        raise TypeError(f"{_NAME}: scale must be a bool, got {scale!r}")
+
+
+def _values_readable(*tensors) -> bool:
+    """Whether the tensors hold concrete values the checks may read (not while
+    tracing with torch.compile, inside a torch.func transform, or on meta)."""
+    if torch.compiler.is_compiling():
+        return False
+    for t in tensors:
+        if t is None:
+            continue
+        if t.device.type == "meta" or torch._C._functorch.is_functorch_wrapped_tensor(t):
+            return False
+    return True
+
+
+def _check_point_counts(x: torch.Tensor, weights: torch.Tensor | None) -> None:
+    """At least MIN_POINTS points of nonzero weight per problem; no negative weights."""
+    if weights is None:
+        if x.shape[-2] < MIN_POINTS:
+            raise ValueError(f"{_NAME}: need at least {MIN_POINTS} points, got N = {x.shape[-2]}")
+        return
+    w = weights.detach()
+    negative = w < 0
+    if bool(negative.any()):
+        index = _first_index(negative.any(-1))
+        raise ValueError(f"{_NAME}: weights must be >= 0, got a negative weight in problem {index} "
+                         f"(batch index of weights)")
+    counts = (w != 0).sum(-1)
+    too_few = counts < MIN_POINTS
+    if bool(too_few.any()):
+        index = _first_index(too_few)
+        count = int(counts[index])
+        what = "all weights are zero" if count == 0 else f"only {count} point(s) have nonzero weight"
+        raise ValueError(f"{_NAME}: need at least {MIN_POINTS} points of nonzero weight per problem; in "
+                         f"problem {index} (batch index of weights) {what}")
+
+
+def _check_spread(variance_x: torch.Tensor, second_moment_x: torch.Tensor) -> None:
+    """With scale=True, x must spread beyond rounding: coincident points leave s = 0/0."""
+    if not _values_readable(variance_x):
+        return
+    rounding = (64 * torch.finfo(variance_x.dtype).eps) ** 2
+    flat = variance_x.detach() <= rounding * second_moment_x.detach()
+    if bool(flat.any()):
+        raise ValueError(f"{_NAME}: with scale=True the points x (of nonzero weight) must not all coincide; "
+                         f"they do in problem {_first_index(flat)}, so the scale is undefined")
+
+
+def _first_index(mask: torch.Tensor) -> tuple[int, ...]:
+    """Batch index of the first True entry of ``mask``."""
+    return tuple(int(i) for i in torch.nonzero(mask)[0]) if mask.dim() else ()
