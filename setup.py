@@ -7,6 +7,8 @@ csrc/cpu/dispatch.cpp picks one at run time. The baseline objects are linked
 first: should any inline function outside the kernel's namespaces be emitted
 by several objects, the linker keeps the baseline copy, never an AVX one.
 """
+import glob
+
 from setuptools import setup
 from torch.utils.cpp_extension import BuildExtension, CppExtension
 
@@ -49,10 +51,7 @@ setup(
         CppExtension(
             name="torchrot._C",
             sources=["csrc/module.cpp", "csrc/ops.cpp", "csrc/cpu/dispatch.cpp"],
-            depends=["csrc/fit_rotation.h", "csrc/cpu/kernel_table.h", "csrc/cpu/fit_rotation_kernel.h"]
-            + [f"csrc/kernel/{h}" for h in ("cayley.h", "cold_start.h", "fit_rotation_impl.h",
-                                            "horn_fallback.h", "lanes.h", "mat3.h", "optimality.h",
-                                            "quaternion.h", "saddle_escape.h")],
+            depends=sorted(glob.glob("csrc/**/*.h", recursive=True)),
             extra_compile_args=COMMON_FLAGS,
             extra_link_args=["-fopenmp"],
         )

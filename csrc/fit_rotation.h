@@ -54,4 +54,12 @@ int64_t fit_rotation_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& M, 
                          const MatrixBatch& out, const FitOptions& options, int32_t* iterations,
                          uint8_t* status);
 
+// The derivative of n fits R = fit_rotation(M), from the optimality condition
+// (kernel/rotation_gradient.h): out = R [u]x with u the damped solution of
+// (tr(S) I - S) u = vex(R^T X - X^T R), S = R^T M, for X = dL/dR (the
+// backward; out = dL/dM) or X = dM (forward mode; out = dR). `damping` is eps
+// in lambda = eps |M|_F. out may alias X exactly.
+void rotation_tangent_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& X, const MatrixBatch& R,
+                          const MatrixBatch& M, const MatrixBatch& out, double damping);
+
 }  // namespace torchrot

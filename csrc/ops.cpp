@@ -9,6 +9,7 @@
 #include <ATen/TensorUtils.h>
 #include <torch/library.h>
 
+#include <cmath>
 #include <string>
 #include <tuple>
 
@@ -75,6 +76,11 @@ void check_out(const at::Tensor& M, const at::Tensor& out) {
               out.sizes());
   TORCH_CHECK(at::has_internal_overlap(out) != at::MemOverlap::Yes, kOpName,
               ": out must not have overlapping elements (e.g. an expanded tensor)");
+}
+
+void check_gradient_eps(double gradient_eps, const char* op_name) {
+  TORCH_CHECK(std::isfinite(gradient_eps) && gradient_eps >= 0, op_name,
+              ": gradient_eps must be a finite number >= 0, got ", gradient_eps);
 }
 
 // Orthonormality tolerance of warm starts by the caller's dtype: reduced
@@ -155,9 +161,10 @@ void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out,
 }
 
 at::Tensor fit_rotation_cpu_op(const at::Tensor& M, const std::optional<at::Tensor>& init,
-                               std::optional<int64_t> max_iter, c10::string_view variant) {
+                               std::optional<int64_t> max_iter, c10::string_view variant, double gradient_eps) {
   const at::Tensor init_b = checked_init(M, init);
   const FitOptions options = parse_options(max_iter, variant);
+  check_gradient_eps(gradient_eps, kOpName);
   at::Tensor out = at::empty(M.sizes(), M.options().memory_format(at::MemoryFormat::Contiguous));
   run_fit(M, init_b, out, options, nullptr, nullptr);
   return out;
@@ -192,15 +199,83 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_cpu_op(
   return {out, iterations, status};
 }
 
+// ---- the derivative (fit_rotation_backward) ----
+
+constexpr const char* kBackwardName = "torchrot.fit_rotation_backward";
+
+void check_tangent_arg(const at::Tensor& t, const char* name, const at::Tensor& R) {
+  TORCH_CHECK(t.dim() >= 2 && t.size(-1) == 3 && t.size(-2) == 3, kBackwardName, ": ", name,
+              " must have shape (..., 3, 3), got ", t.sizes());
+  TORCH_CHECK(t.device() == R.device(), kBackwardName, ": ", name, " must be on R's device (", R.device(),
+              "), got ", t.device());
+  TORCH_CHECK(t.scalar_type() == R.scalar_type(), kBackwardName, ": ", name, " must have R's dtype (",
+              R.scalar_type(), "), got ", t.scalar_type());
+}
+
+// (N, 3, 3) view of `t` broadcast to `shape` (its geometry, no copy), or of a
+// contiguous compute-dtype copy kept in `keep`.
+MatrixBatch broadcast_view(const at::Tensor& t, at::IntArrayRef shape, int64_t n, bool reduced,
+                           at::ScalarType compute, at::Tensor& keep) {
+  if (!reduced) {
+    const auto geometry = at::inferExpandGeometry_dimvector(t.sizes(), t.strides(), shape);
+    if (auto view = batch_view(t, geometry.sizes, geometry.strides, n)) return *view;
+  }
+  keep = t.expand(shape).to(compute).contiguous();
+  return contiguous_view(keep);
+}
+
+// dL/dM for dL/dR = grad at R = fit_rotation(M); with grad = dM instead, the
+// forward-mode dR (the linear map is self-adjoint, see
+// kernel/rotation_gradient.h). grad has R's shape; M broadcasts to it.
+at::Tensor fit_rotation_backward_cpu_op(const at::Tensor& grad, const at::Tensor& R, const at::Tensor& M,
+                                        double gradient_eps) {
+  TORCH_CHECK(R.dim() >= 2 && R.size(-1) == 3 && R.size(-2) == 3, kBackwardName,
+              ": R must have shape (..., 3, 3), got ", R.sizes());
+  TORCH_CHECK(is_supported_dtype(R.scalar_type()), kBackwardName,
+              ": R must be float32, float64, float16 or bfloat16, got ", R.scalar_type());
+  check_tangent_arg(grad, "grad", R);
+  check_tangent_arg(M, "M", R);
+  TORCH_CHECK(grad.sizes() == R.sizes(), kBackwardName, ": grad must have R's shape ", R.sizes(), ", got ",
+              grad.sizes());
+  TORCH_CHECK(at::is_expandable_to(M.sizes(), R.sizes()), kBackwardName, ": M of shape ", M.sizes(),
+              " must broadcast to R's shape ", R.sizes());
+  check_gradient_eps(gradient_eps, kBackwardName);
+  const at::ScalarType dtype = R.scalar_type();
+  const bool reduced = dtype == at::kHalf || dtype == at::kBFloat16;
+  const at::ScalarType compute = reduced ? at::kFloat : dtype;
+  at::Tensor out = at::empty(R.sizes(), R.options().memory_format(at::MemoryFormat::Contiguous));
+  const int64_t n = R.numel() / 9;
+  if (n == 0) return out;
+  at::Tensor grad_keep, r_keep, m_keep;
+  const MatrixBatch grad_view = broadcast_view(grad, R.sizes(), n, reduced, compute, grad_keep);
+  const MatrixBatch r_view = broadcast_view(R, R.sizes(), n, reduced, compute, r_keep);
+  const MatrixBatch m_view = broadcast_view(M, R.sizes(), n, reduced, compute, m_keep);
+  if (!reduced) {
+    rotation_tangent_cpu(compute, n, grad_view, r_view, m_view, contiguous_view(out), gradient_eps);
+    return out;
+  }
+  at::Tensor out_float = at::empty({n, 3, 3}, R.options().dtype(compute));
+  rotation_tangent_cpu(compute, n, grad_view, r_view, m_view, contiguous_view(out_float), gradient_eps);
+  out.copy_(out_float.view(R.sizes()));
+  return out;
+}
+
 }  // namespace
 
 TORCH_LIBRARY(torchrot, m) {
-  m.def("fit_rotation(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\") -> Tensor");
+  // gradient_eps only affects the derivative (see fit_rotation_backward).
+  m.def(
+      "fit_rotation(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\", "
+      "float gradient_eps=1e-6) -> Tensor");
   m.def(
       "fit_rotation_out(Tensor M, Tensor? init, int? max_iter, str variant, Tensor(a!) out) -> ()");
   m.def(
       "fit_rotation_info(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\") "
       "-> (Tensor R, Tensor iterations, Tensor status)");
+  // dL/dM given dL/dR = grad at R = fit_rotation(M), through the optimality
+  // condition (R^T M symmetric) with Tikhonov damping gradient_eps; the same
+  // map gives the forward-mode tangent dR from dM.
+  m.def("fit_rotation_backward(Tensor grad, Tensor R, Tensor M, float gradient_eps=1e-6) -> Tensor");
   // Which CPU kernel object runs: "scalar", "default", "avx2" or "avx512".
   m.def("cpu_kernel() -> str", [] { return cpu_kernel_name(); });
   // Operators that do nothing: the benchmark's yardsticks for the fixed cost
@@ -208,17 +283,18 @@ TORCH_LIBRARY(torchrot, m) {
   // signature and an (uninitialised) output of M's shape.
   m.def("_empty_op(Tensor M) -> ()");
   m.def(
-      "_empty_fit_rotation(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\") "
-      "-> Tensor");
+      "_empty_fit_rotation(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\", "
+      "float gradient_eps=1e-6) -> Tensor");
 }
 
 TORCH_LIBRARY_IMPL(torchrot, CPU, m) {
   m.impl("fit_rotation", &fit_rotation_cpu_op);
   m.impl("fit_rotation_out", &fit_rotation_out_cpu_op);
   m.impl("fit_rotation_info", &fit_rotation_info_cpu_op);
+  m.impl("fit_rotation_backward", &fit_rotation_backward_cpu_op);
   m.impl("_empty_op", [](const at::Tensor&) {});
   m.impl("_empty_fit_rotation", [](const at::Tensor& M, const std::optional<at::Tensor>&, std::optional<int64_t>,
-                                   c10::string_view) { return at::empty(M.sizes(), M.options()); });
+                                   c10::string_view, double) { return at::empty(M.sizes(), M.options()); });
 }
 
 }  // namespace torchrot

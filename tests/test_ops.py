@@ -86,9 +86,11 @@ def test_opcheck_default_arguments():
 
 
 def test_schema():
-    assert str(op.fit_rotation.default._schema) == (
-        'torchrot::fit_rotation(Tensor M, Tensor? init=None, int? max_iter=None, str variant="conservative") -> Tensor'
-    )
+    schema = op.fit_rotation.default._schema
+    assert [a.name for a in schema.arguments] == ["M", "init", "max_iter", "variant", "gradient_eps"]
+    assert schema.arguments[4].default_value == pytest.approx(1e-6)
+    backward = op.fit_rotation_backward.default._schema
+    assert [a.name for a in backward.arguments] == ["grad", "R", "M", "gradient_eps"]
     out_schema = op.fit_rotation_out.default._schema
     assert out_schema.arguments[-1].name == "out" and out_schema.arguments[-1].alias_info.is_write
     assert len(out_schema.returns) == 0

@@ -71,3 +71,38 @@ def check_out(M: torch.Tensor, out: torch.Tensor) -> None:
 def check_all(M, init, max_iter, variant) -> None:
     check_init(M, init)
     check_options(max_iter, variant)
+
+
+BACKWARD_NAME = "torchrot.fit_rotation_backward"
+
+
+def check_backward(grad: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps) -> None:
+    """Mirrors the checks of the C++ fit_rotation_backward (csrc/ops.cpp)."""
+    for name, t in (("R", R), ("grad", grad), ("M", M)):
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(f"{BACKWARD_NAME}: {name} must be a torch.Tensor, got {type(t).__name__}")
+        if t.dim() < 2 or t.shape[-1] != 3 or t.shape[-2] != 3:
+            raise ValueError(f"{BACKWARD_NAME}: {name} must have shape (..., 3, 3), got {list(t.shape)}")
+    if R.dtype not in SUPPORTED_DTYPES:
+        raise TypeError(f"{BACKWARD_NAME}: R must be float32, float64, float16 or bfloat16, got {R.dtype}")
+    for name, t in (("grad", grad), ("M", M)):
+        if t.device != R.device:
+            raise ValueError(f"{BACKWARD_NAME}: {name} must be on R's device ({R.device}), got {t.device}")
+        if t.dtype != R.dtype:
+            raise TypeError(f"{BACKWARD_NAME}: {name} must have R's dtype ({R.dtype}), got {t.dtype}")
+    if grad.shape != R.shape:
+        raise ValueError(f"{BACKWARD_NAME}: grad must have R's shape {list(R.shape)}, got {list(grad.shape)}")
+    try:
+        ok = torch.broadcast_shapes(M.shape, R.shape) == R.shape
+    except RuntimeError:
+        ok = False
+    if not ok:
+        raise ValueError(f"{BACKWARD_NAME}: M of shape {list(M.shape)} must broadcast to R's shape {list(R.shape)}")
+    check_gradient_eps(gradient_eps, BACKWARD_NAME)
+
+
+def check_gradient_eps(gradient_eps, name: str = OP_NAME) -> None:
+    if isinstance(gradient_eps, bool) or not isinstance(gradient_eps, (int, float)):
+        raise TypeError(f"{name}: gradient_eps must be a float >= 0, got {gradient_eps!r}")
+    if not (0 <= gradient_eps < float("inf")):
+        raise ValueError(f"{name}: gradient_eps must be a finite number >= 0, got {gradient_eps!r}")

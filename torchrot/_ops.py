@@ -9,9 +9,11 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
+from torch.autograd import forward_ad
 
-from torchrot._checks import check_all, check_out
-from torchrot.reference import fit_rotation_reference
+from torchrot._autograd import FitRotationFunction
+from torchrot._checks import check_all, check_backward, check_gradient_eps, check_out
+from torchrot.reference import GRADIENT_EPS, fit_rotation_backward_reference, fit_rotation_reference
 
 _OTHER_DEVICES = ("cuda", "xpu", "mps")
 
@@ -36,6 +38,7 @@ def fit_rotation(
     *,
     max_iter: int | None = None,
     variant: str = "conservative",
+    gradient_eps: float = GRADIENT_EPS,
     out: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The rotation R (det R = +1) maximising tr(R^T M): the rotation nearest to M.
@@ -53,7 +56,7 @@ def fit_rotation(
             Must be rotations up to 1e-4 (float32) / 1e-7 (float64); they are
             re-orthonormalised (one Newton-Schulz step) before use, so results
             fed back call after call do not drift. Without init, a cold start
-            picks the best of 12 pre-rotations.
+            picks the best of 12 pre-rotations. No gradient flows to init.
         max_iter: ``None`` (default) iterates each matrix to convergence at its
             dtype's precision and guarantees the maximum (a Horn/Jacobi
             fallback takes over matrices that do not converge within 12 steps
@@ -66,8 +69,15 @@ def fit_rotation(
             (c = sqrt(tr(M)^2 + m^T m)) or ``"gershgorin"`` (Eqs. 27-28). With
             ``max_iter=None``, Gershgorin hands over to the conservative
             estimate after two steps (its slack makes convergence linear).
+        gradient_eps: damping of the derivative (autograd, forward mode,
+            torch.func): the optimality system (tr(S) I - S) u = g is solved
+            as (A^2 + lambda^2 I)^-1 A g with lambda = gradient_eps |M|_F. The
+            exact derivative up to a relative (lambda / (sigma_i + sigma_j))^2
+            where it exists; bounded (|u| <= |g| / (2 lambda)) where R is not
+            unique (rank-deficient M, rotations by pi). ``0``: undamped.
         out: optional tensor of M's shape, dtype and device to write into; it
             may be ``init`` or ``M`` itself (an in-place warm-start update).
+            Not differentiable: raises if M requires grad.
 
     Returns:
         ``(..., 3, 3)`` rotations, M's dtype. A matrix whose M or init holds
@@ -75,21 +85,66 @@ def fit_rotation(
         is not unique (M = 0, rank-1 M, ...) a maximising rotation is returned
         deterministically (for M = 0: init, else the identity).
 
+    Derivatives: differentiable in M through the optimality condition (R^T M
+    symmetric; see torchrot/_autograd.py), not through an SVD; finite for
+    every finite M. With a finite ``max_iter`` the derivative is that of the
+    exact maximiser evaluated at the returned R. Under ``torch.autocast`` the
+    fit runs in float32.
+
     Raises:
         ValueError / TypeError / RuntimeError naming the argument: M not
         ``(..., 3, 3)`` or not floating point; init of another shape, dtype or
         device, or not a rotation; out of the wrong shape, dtype or device, or
-        overlapping itself or partially overlapping M or init; unknown variant;
-        max_iter < 1.
-
-    Autograd is not supported yet (no gradient flows through this op).
+        overlapping itself or partially overlapping M or init, or given while
+        M requires grad; unknown variant; max_iter < 1; gradient_eps < 0.
     """
+    _check_max_iter(max_iter)
+    if gradient_eps is not GRADIENT_EPS:
+        check_gradient_eps(gradient_eps)
+    differentiable = _needs_derivative(M)
+    if out is not None:
+        if differentiable:
+            raise RuntimeError(
+                "torchrot.fit_rotation: out= does not support automatic differentiation "
+                "(M requires grad); call it without out"
+            )
+        torch.ops.torchrot.fit_rotation_out(M, init, max_iter, variant, out)
+        return out
+    if torch.compiler.is_compiling():
+        # The operator's own autograd (register_autograd) is what torch.compile
+        # traces; dynamo does not trace an autograd.Function with a custom jvp.
+        return torch.ops.torchrot.fit_rotation.default(M, init, max_iter, variant, gradient_eps)
+    if differentiable:
+        M, init = _autocast_inputs(M, init)
+        return FitRotationFunction.apply(M, init, max_iter, variant, float(gradient_eps))
+    # Nothing to differentiate: skip the operator's autograd kernel, which is
+    # Python (torch.library.register_autograd) and would more than double the
+    # cost of a small call.
+    with torch._C._AutoDispatchBelowAutograd():
+        return torch.ops.torchrot.fit_rotation.default(M, init, max_iter, variant, gradient_eps)
+
+
+def _check_max_iter(max_iter) -> None:
     if max_iter is not None and type(max_iter) is not int:  # bool is an int to the op's schema
         raise TypeError(f"torchrot.fit_rotation: max_iter must be None or an int >= 1, got {max_iter!r}")
-    if out is None:
-        return torch.ops.torchrot.fit_rotation(M, init, max_iter, variant)
-    torch.ops.torchrot.fit_rotation_out(M, init, max_iter, variant, out)
-    return out
+
+
+def _needs_derivative(M: torch.Tensor) -> bool:
+    """Whether a call must record derivatives: reverse mode (also under
+    torch.func.grad, whose tensors require grad) or forward mode (a dual
+    level is open, also under torch.func.jvp)."""
+    if not isinstance(M, torch.Tensor):
+        return False  # the operator raises a clear error
+    return (torch.is_grad_enabled() and M.requires_grad) or forward_ad._current_level >= 0
+
+
+def _autocast_inputs(M: torch.Tensor, init: torch.Tensor | None):
+    """The float32 cast autocast applies inside the operator, done before the
+    autograd.Function so that R, M and the saved tensors share one dtype."""
+    if M.dtype in (torch.float16, torch.bfloat16) and torch.is_autocast_enabled(M.device.type):
+        M = M.float()
+        init = None if init is None else init.float()
+    return M, init
 
 
 def fit_rotation_info(
@@ -112,10 +167,11 @@ def fit_rotation_info(
         status ``(...)`` uint8: 0 the Cayley iteration, 1 the Horn/Jacobi
         fallback (converged mode), 3 NaN/Inf in M or init (R is NaN).
 
+    Not differentiable (R carries no gradient); use :func:`fit_rotation`.
+
     Raises: the errors of :func:`fit_rotation`.
     """
-    if max_iter is not None and type(max_iter) is not int:
-        raise TypeError(f"torchrot.fit_rotation: max_iter must be None or an int >= 1, got {max_iter!r}")
+    _check_max_iter(max_iter)
     return FitInfo(*torch.ops.torchrot.fit_rotation_info(M, init, max_iter, variant))
 
 
@@ -127,8 +183,9 @@ def _empty_result(M: torch.Tensor) -> torch.Tensor:
 
 
 @torch.library.register_fake("torchrot::fit_rotation")
-def _fit_rotation_fake(M, init=None, max_iter=None, variant="conservative"):
+def _fit_rotation_fake(M, init=None, max_iter=None, variant="conservative", gradient_eps=GRADIENT_EPS):
     check_all(M, init, max_iter, variant)
+    check_gradient_eps(gradient_eps)
     return _empty_result(M)
 
 
@@ -138,13 +195,19 @@ def _fit_rotation_out_fake(M, init, max_iter, variant, out):
     check_out(M, out)
 
 
+@torch.library.register_fake("torchrot::fit_rotation_backward")
+def _fit_rotation_backward_fake(grad, R, M, gradient_eps=GRADIENT_EPS):
+    check_backward(grad, R, M, gradient_eps)
+    return _empty_result(R)
+
+
 @torch.library.register_fake("torchrot::_empty_op")
 def _empty_op_fake(M):
     return None
 
 
 @torch.library.register_fake("torchrot::_empty_fit_rotation")
-def _empty_fit_rotation_fake(M, init=None, max_iter=None, variant="conservative"):
+def _empty_fit_rotation_fake(M, init=None, max_iter=None, variant="conservative", gradient_eps=GRADIENT_EPS):
     return _empty_result(M)
 
 
@@ -163,7 +226,8 @@ def _fit_rotation_info_fake(M, init=None, max_iter=None, variant="conservative")
 
 
 @torch.library.register_kernel("torchrot::fit_rotation", _OTHER_DEVICES)
-def _fit_rotation_other(M, init=None, max_iter=None, variant="conservative"):
+def _fit_rotation_other(M, init=None, max_iter=None, variant="conservative", gradient_eps=GRADIENT_EPS):
+    check_gradient_eps(gradient_eps)
     return fit_rotation_reference(M, init, max_iter=max_iter, variant=variant)
 
 
@@ -171,6 +235,11 @@ def _fit_rotation_other(M, init=None, max_iter=None, variant="conservative"):
 def _fit_rotation_out_other(M, init, max_iter, variant, out):
     check_out(M, out)
     out.copy_(fit_rotation_reference(M, init, max_iter=max_iter, variant=variant))
+
+
+@torch.library.register_kernel("torchrot::fit_rotation_backward", _OTHER_DEVICES)
+def _fit_rotation_backward_other(grad, R, M, gradient_eps=GRADIENT_EPS):
+    return fit_rotation_backward_reference(grad, R, M, gradient_eps)
 
 
 @torch.library.register_kernel("torchrot::fit_rotation_info", _OTHER_DEVICES)

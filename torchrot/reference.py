@@ -16,7 +16,7 @@ import math
 
 import torch
 
-from torchrot._checks import OP_NAME, check_all
+from torchrot._checks import OP_NAME, check_all, check_backward
 
 # Mirrors kernel::Tolerances (csrc/kernel/fit_rotation_impl.h).
 CONVERGED_CAP = 12
@@ -264,7 +264,8 @@ def _advance(state: dict, variant: str, max_iter: int | None, eps: float) -> Non
             c = torch.where(switched, _objective_estimate(S, t, mm, "conservative"), c)
         w, d = _cayley_fraction(S, c)
         ww, dd = (w * w).sum(-1), d * d
-        valid = (dd > 0) & torch.isfinite(dd + ww)
+        # as the kernel: no step where d^2 + w.w underflows (H singular to working precision)
+        valid = (dd > 0) & torch.isfinite(dd + ww) & (dd + ww > torch.finfo(dd.dtype).tiny)
         stepping = running & valid
         stalled = running & ~valid
         safe_d = torch.where(stepping, d, torch.ones_like(d))
@@ -360,3 +361,61 @@ def fit_rotation_reference(
     if return_info:
         return R, iterations, status
     return R
+
+
+GRADIENT_EPS = 1e-6  # default damping of the derivative (csrc/ops.cpp schema)
+
+
+def _cross_matrix(u: torch.Tensor) -> torch.Tensor:
+    """[u]x for ``(..., 3)`` u: the matrix with [u]x v = u x v."""
+    zero = torch.zeros_like(u[..., 0])
+    x, y, z = u.unbind(-1)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).unflatten(-1, (3, 3))
+
+
+def fit_rotation_backward_reference(
+    grad: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: float = GRADIENT_EPS
+) -> torch.Tensor:
+    """dL/dM from dL/dR = ``grad`` at R = fit_rotation(M), in batched PyTorch.
+
+    The fitted R makes S = R^T M symmetric; differentiating that condition
+    (csrc/kernel/rotation_gradient.h has the derivation) gives
+    dL/dM = R [u]x with (tr(S) I - S) u = vex(R^T G - G^T R), solved with
+    Tikhonov damping lambda = gradient_eps |M|_F:
+    u = (A^2 + lambda^2 I)^-1 A g. The map is self-adjoint, so with
+    ``grad = dM`` this returns the forward-mode tangent dR.
+
+    Convention: R (det +1) maximises tr(R^T M); M = sum_i w_i y_i x_i^T gives
+    R x_i ~ y_i (column vectors).
+
+    Args:
+        grad: ``(..., 3, 3)`` with R's shape, dtype and device.
+        R: ``(..., 3, 3)`` the fitted rotations.
+        M: ``(..., 3, 3)`` the fitted matrices, broadcastable to R.
+        gradient_eps: damping, a finite float >= 0 (0: undamped).
+    Returns:
+        ``(..., 3, 3)`` in R's dtype (reduced precision computed in float32).
+    """
+    check_backward(grad, R, M, gradient_eps)
+    out_dtype = R.dtype
+    compute = torch.float32 if R.dtype in (torch.float16, torch.bfloat16) else R.dtype
+    grad, R, M = grad.to(compute), R.to(compute), M.to(compute).expand(R.shape)
+    huge = torch.finfo(compute).max
+    # |M|_F without overflow: scale by the largest entry first.
+    max_abs = M.abs().amax((-2, -1), keepdim=True)
+    inv_max = torch.where(max_abs > 0, 1 / max_abs, torch.zeros_like(max_abs))  # inf if subnormal: saturated below
+    A = torch.where(max_abs > 0, M / torch.where(max_abs > 0, max_abs, torch.ones_like(max_abs)), M)
+    frob = A.square().sum((-2, -1), keepdim=True).sqrt()
+    frob = torch.where(max_abs > 0, frob, torch.ones_like(frob))
+    S = R.mT @ (A / frob)
+    S = (S + S.mT) / 2
+    eye = torch.eye(3, dtype=compute, device=R.device)
+    K = _trace(S)[..., None, None] * eye - S
+    B = R.mT @ grad
+    g = _skew_vector(B)
+    Q = K @ K + gradient_eps**2 * eye
+    u, info = torch.linalg.solve_ex(Q, K @ g[..., None])
+    u = torch.where((info == 0)[..., None], u[..., 0], torch.zeros_like(u[..., 0]))  # singular (eps = 0): dropped
+    scale = (inv_max.clamp(max=huge) / frob)[..., 0]
+    out = (R @ _cross_matrix(u)) * scale[..., None]
+    return out.clamp(-huge, huge).to(out_dtype)

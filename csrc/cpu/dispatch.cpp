@@ -77,6 +77,14 @@ int64_t run_kernel(const cpu::KernelTable& table, const cpu::BatchArgs<double>& 
   return table.fit_double(args);
 }
 
+void run_kernel(const cpu::KernelTable& table, const cpu::TangentArgs<float>& args) {
+  table.tangent_float(args);
+}
+
+void run_kernel(const cpu::KernelTable& table, const cpu::TangentArgs<double>& args) {
+  table.tangent_double(args);
+}
+
 }  // namespace
 
 std::string cpu_kernel_name() { return kernels(selected_isa()).name; }
@@ -100,6 +108,23 @@ int64_t fit_rotation_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& M, 
     bad_inits = run_kernel(table, args);
   });
   return bad_inits;
+}
+
+void rotation_tangent_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& X, const MatrixBatch& R,
+                          const MatrixBatch& M, const MatrixBatch& out, double damping) {
+  const cpu::KernelTable& table = kernels(selected_isa());
+  AT_DISPATCH_FLOATING_TYPES(dtype, "torchrot_rotation_tangent_cpu", [&] {
+    cpu::TangentArgs<scalar_t> args{};
+    fill_view(X, args.X, args.x_stride);
+    fill_view(R, args.R, args.r_stride);
+    fill_view(M, args.M, args.m_stride);
+    const scalar_t* out_data = nullptr;
+    fill_view(out, out_data, args.out_stride);
+    args.out = const_cast<scalar_t*>(out_data);
+    args.n = n;
+    args.damping = static_cast<scalar_t>(damping);
+    run_kernel(table, args);
+  });
 }
 
 }  // namespace torchrot

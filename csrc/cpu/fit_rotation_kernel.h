@@ -16,71 +16,16 @@
 #include <vector>
 
 #include "../kernel/fit_rotation_impl.h"
+#include "block_io.h"
 #include "kernel_table.h"
-#include "soa_transpose.h"
-
 
 namespace torchrot {
 namespace cpu {
 inline namespace CPU_CAPABILITY {
 namespace {
 
-
-using kernel::Mat3;
-
 // Matrices per parallel task: enough that scheduling costs little.
 constexpr int64_t kGrainSize = 2048;
-
-// Entry (r, c) of matrix i, for arbitrary or for contiguous (9, 3, 1) strides.
-template <bool kContiguous>
-inline int64_t offset(const int64_t stride[3], int64_t i, int k) {
-  if (kContiguous) return 9 * i + k;
-  return i * stride[0] + (k / 3) * stride[1] + (k % 3) * stride[2];
-}
-
-// Gathers `count` matrices starting at `first` into SoA lanes; missing lanes
-// of a tail block get the identity, a harmless input.
-template <typename L, bool kContiguous>
-inline Mat3<typename L::V> load_block(const typename L::Scalar* data, const int64_t stride[3], int64_t first,
-                                      int count) {
-  using T = typename L::Scalar;
-#ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
-  if constexpr (kContiguous && L::width > 1) {
-    if (count == L::width) {  // full block: in-register transposition
-      Mat3<typename L::V> A;
-      load_soa<T>(data + 9 * first, A.a);
-      return A;
-    }
-  }
-#endif
-  alignas(64) T buf[9][L::width];
-  for (int j = 0; j < L::width; ++j) {
-    for (int k = 0; k < 9; ++k) {
-      buf[k][j] = j < count ? data[offset<kContiguous>(stride, first + j, k)] : T(k % 4 == 0 ? 1 : 0);
-    }
-  }
-  Mat3<typename L::V> A;
-  for (int k = 0; k < 9; ++k) A.a[k] = L::load(buf[k]);
-  return A;
-}
-
-template <typename L, bool kContiguous>
-inline void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, const int64_t stride[3],
-                        int64_t first, int count) {
-  using T = typename L::Scalar;
-#ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
-  if constexpr (kContiguous && L::width > 1) {
-    if (count == L::width) {
-      store_soa<T>(R.a, data + 9 * first);
-      return;
-    }
-  }
-#endif
-  alignas(64) T buf[9][L::width];
-  for (int k = 0; k < 9; ++k) L::store(R.a[k], buf[k]);
-  for (int j = 0; j < count; ++j)
-    for (int k = 0; k < 9; ++k) data[offset<kContiguous>(stride, first + j, k)] = buf[k][j];
-}
 
 // Matrices fitted together, so that the lanes saved between passes stay in
 // cache; and the Cayley steps of one pass in converged mode, after which
@@ -237,8 +182,6 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
   return bad_inits;
 }
 
-inline bool is_contiguous_batch(const int64_t s[3]) { return s[0] == 9 && s[1] == 3 && s[2] == 1; }
-
 template <typename L>
 int64_t fit_batch(const BatchArgs<typename L::Scalar>& args) {
   const bool contiguous = is_contiguous_batch(args.m_stride) && is_contiguous_batch(args.out_stride) &&
@@ -248,12 +191,6 @@ int64_t fit_batch(const BatchArgs<typename L::Scalar>& args) {
     bad_inits += contiguous ? fit_range<L, true>(args, begin, end) : fit_range<L, false>(args, begin, end);
   });
   return bad_inits.load();
-}
-
-template <template <typename> class Lanes>
-KernelTable make_kernel_table(const char* name) {
-  return KernelTable{name, Lanes<float>::width, Lanes<double>::width, &fit_batch<Lanes<float>>,
-                     &fit_batch<Lanes<double>>};
 }
 
 }  // namespace

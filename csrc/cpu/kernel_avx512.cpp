@@ -1,7 +1,7 @@
 // Kernel object: AVX-512 (F, BW, VL, DQ): 16 float / 8 double matrices per block.
 // Built with its own flags and CPU_CAPABILITY (setup.py); everything it
 // defines lives in an anonymous namespace except the table getter below.
-#include "fit_rotation_kernel.h"
+#include "kernel_object.h"
 
 namespace torchrot {
 namespace cpu {

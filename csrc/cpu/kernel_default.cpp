@@ -1,7 +1,7 @@
 // Kernel object: the portable baseline: at::vec::Vectorized's generic implementation, no instruction-set flags.
 // Built with its own flags and CPU_CAPABILITY (setup.py); everything it
 // defines lives in an anonymous namespace except the table getter below.
-#include "fit_rotation_kernel.h"
+#include "kernel_object.h"
 
 namespace torchrot {
 namespace cpu {

@@ -24,6 +24,24 @@ struct BatchArgs {
   uint8_t* status;      // optional, n entries (FitStatus)
 };
 
+// The derivative of N fits (see kernel/rotation_gradient.h): out = R [u]x
+// with u the damped solution of the optimality condition's linearisation
+// for X = dL/dR or dM. All four are N 3x3 matrices with any element strides;
+// out may alias X exactly.
+template <typename T>
+struct TangentArgs {
+  const T* X;
+  int64_t x_stride[3];
+  const T* R;
+  int64_t r_stride[3];
+  const T* M;
+  int64_t m_stride[3];
+  T* out;
+  int64_t out_stride[3];
+  int64_t n;
+  T damping;  // eps of lambda = eps |M|_F
+};
+
 struct KernelTable {
   const char* name;
   int width_float;   // matrices per SIMD block
@@ -31,6 +49,8 @@ struct KernelTable {
   // Each returns the number of matrices whose warm start was not a rotation.
   int64_t (*fit_float)(const BatchArgs<float>&);
   int64_t (*fit_double)(const BatchArgs<double>&);
+  void (*tangent_float)(const TangentArgs<float>&);
+  void (*tangent_double)(const TangentArgs<double>&);
 };
 
 // One per kernel object; the SIMD ones must only be called on CPUs that

@@ -139,8 +139,14 @@ inline void advance(LaneState<L>& s, const FitOptions& options, int64_t budget) 
     }
     const CayleyStep<V> step = cayley_step(S, c);
 
-    // A singular H (or a non-finite step) takes no step.
-    const Mask valid = L::mask_and(L::gt(step.dd, zero), L::is_finite(step.dd + step.ww));
+    // A singular H (or a non-finite step) takes no step; nor does a step
+    // whose d^2 + w.w is below the smallest normal number: 1 / (d^2 + w.w) in
+    // cayley_rotation would overflow and make R Inf/NaN (d and w have lost
+    // their precision by then anyway). Since |S| >= 1 after normalisation,
+    // that means H is singular to working precision (a flat objective).
+    const V norm2 = step.dd + step.ww;
+    const Mask valid = L::mask_and(L::mask_and(L::gt(step.dd, zero), L::is_finite(norm2)),
+                                   L::gt(norm2, V(std::numeric_limits<T>::min())));
     const Mask stepping = L::mask_and(s.running, valid);
     const Mask stalled = L::mask_and(s.running, L::mask_not(valid));
     s.R = select<L>(stepping, times(s.R, cayley_rotation(step)), s.R);

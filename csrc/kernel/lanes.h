@@ -33,6 +33,7 @@ struct ScalarLanes {
   static V abs(V x) { return std::fabs(x); }
   static V sqrt(V x) { return std::sqrt(x); }
   static V max(V a, V b) { return (a != a || a > b) ? a : b; }  // NaN-propagating, as Vectorized
+  static V min(V a, V b) { return (a != a || a < b) ? a : b; }
   static Mask lt(V a, V b) { return a < b; }
   static Mask gt(V a, V b) { return a > b; }
   static Mask eq(V a, V b) { return a == b; }
@@ -62,6 +63,7 @@ struct VectorLanes {
   static V abs(V x) { return x.abs(); }
   static V sqrt(V x) { return x.sqrt(); }
   static V max(V a, V b) { return at::vec::maximum(a, b); }  // NaN-propagating
+  static V min(V a, V b) { return at::vec::minimum(a, b); }
   static Mask lt(V a, V b) { return a < b; }
   static Mask gt(V a, V b) { return a > b; }
   static Mask eq(V a, V b) { return a == b; }

@@ -1,0 +1,29 @@
+// What each kernel object (kernel_*.cpp) instantiates: the fit and the
+// derivative kernels for float and double over one lane type, compiled with
+// that object's instruction-set flags, gathered into its KernelTable.
+#pragma once
+
+#include "fit_rotation_kernel.h"
+#include "kernel_table.h"
+#include "rotation_gradient_kernel.h"
+
+namespace torchrot {
+namespace cpu {
+inline namespace CPU_CAPABILITY {
+namespace {
+
+template <template <typename> class Lanes>
+KernelTable make_kernel_table(const char* name) {
+  return KernelTable{name,
+                     Lanes<float>::width,
+                     Lanes<double>::width,
+                     &fit_batch<Lanes<float>>,
+                     &fit_batch<Lanes<double>>,
+                     &tangent_batch<Lanes<float>>,
+                     &tangent_batch<Lanes<double>>};
+}
+
+}  // namespace
+}  // namespace CPU_CAPABILITY
+}  // namespace cpu
+}  // namespace torchrot

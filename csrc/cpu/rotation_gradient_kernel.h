@@ -1,0 +1,54 @@
+// The batched derivative kernel, included by each kernel_*.cpp and compiled
+// with that file's instruction-set flags: out[i] = R[i] [u_i]x, the damped
+// solution of the optimality condition's linearisation
+// (kernel/rotation_gradient.h) for X[i] = dL/dR (backward) or dM (forward
+// mode). One pass over the batch in SIMD blocks; memory bound.
+#pragma once
+
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+
+#include "../kernel/rotation_gradient.h"
+#include "block_io.h"
+#include "kernel_table.h"
+
+namespace torchrot {
+namespace cpu {
+inline namespace CPU_CAPABILITY {
+namespace {
+
+constexpr int64_t kTangentGrainSize = 4096;
+
+template <typename L, bool kContiguous>
+void tangent_range(const TangentArgs<typename L::Scalar>& args, int64_t begin, int64_t end) {
+  for (int64_t first = begin; first < end; first += L::width) {
+    const int count = static_cast<int>(std::min<int64_t>(L::width, end - first));
+    // All inputs are in registers before `out` is written: out may alias X.
+    const Mat3<typename L::V> X = load_block<L, kContiguous>(args.X, args.x_stride, first, count);
+    const Mat3<typename L::V> R = load_block<L, kContiguous>(args.R, args.r_stride, first, count);
+    const Mat3<typename L::V> M = load_block<L, kContiguous>(args.M, args.m_stride, first, count);
+    store_block<L, kContiguous>(kernel::rotation_tangent<L>(X, R, M, args.damping), args.out, args.out_stride,
+                                first, count);
+  }
+}
+
+template <typename L>
+void tangent_batch(const TangentArgs<typename L::Scalar>& args) {
+  const bool contiguous = is_contiguous_batch(args.x_stride) && is_contiguous_batch(args.r_stride) &&
+                          is_contiguous_batch(args.m_stride) && is_contiguous_batch(args.out_stride);
+  // Blocks start at multiples of the width from `begin`: results do not
+  // depend on the split (each lane computes on its own matrix anyway).
+  at::parallel_for(0, args.n, kTangentGrainSize, [&](int64_t begin, int64_t end) {
+    if (contiguous) {
+      tangent_range<L, true>(args, begin, end);
+    } else {
+      tangent_range<L, false>(args, begin, end);
+    }
+  });
+}
+
+}  // namespace
+}  // namespace CPU_CAPABILITY
+}  // namespace cpu
+}  // namespace torchrot

@@ -1,0 +1,130 @@
+// The derivative of the fitted rotation, from the optimality condition.
+//
+// Derivation (see also docs in torchrot/_autograd.py). The maximiser R of
+// tr(R^T M) makes S = R^T M symmetric (paper, Sec. 3: the gradient of the
+// objective on SO(3) is the skew part of S), with tr(S) I - S positive
+// semi-definite at the maximum. Perturb M -> M + dM and R -> R (I + [w]x),
+// [w]x the cross-product matrix of w. To first order
+//     d(R^T M) = -[w]x S + R^T dM,
+// and its skew part must vanish. For symmetric S,
+//     [w]x S + S [w]x = [(tr(S) I - S) w]x,
+// so, with A = tr(S) I - S and vex([a]x) = a,
+//     A w = vex(E - E^T),   E = R^T dM,          dR = R [w]x.        (G1)
+// A's eigenvalues are sigma_i + sigma_j (the signed singular values of M):
+// it is singular exactly where R is not unique (rank-deficient M, rotations
+// by pi). The map dM -> dR is self-adjoint under <X, Y> = tr(X^T Y): for a
+// loss gradient G = dL/dR, dL = <G, R [w]x> = g . w with g = vex(R^T G -
+// G^T R), and since A is symmetric, dL/dM = R [u]x with A u = g.       (G2)
+// So one routine gives both the backward (G2, input G) and the forward-mode
+// tangent (G1, input dM).
+//
+// Damping. A is replaced by its Tikhonov-regularised inverse,
+//     u = (A^2 + lambda^2 I)^-1 A g,   lambda = eps |M|_F,
+// which equals A^-1 g up to a relative (lambda / (sigma_i + sigma_j))^2
+// (below rounding where the system is well conditioned) and is bounded by
+// |g| / (2 lambda) where A is (nearly) singular, with no branch. The solve
+// runs on S / |M|_F, so nothing over- or underflows for any finite M; the
+// result is divided by |M|_F (the derivative of R scales as 1 / |M|).
+#pragma once
+
+#include <cmath>
+#include <limits>
+
+#include "lanes.h"
+#include "mat3.h"
+
+namespace torchrot {
+namespace kernel {
+inline namespace CPU_CAPABILITY {
+namespace {
+
+template <typename V>
+struct Vec3 {
+  V x, y, z;
+};
+
+// vex(B - B^T) for B = R^T X: the axial vector of twice B's skew part.
+template <typename V>
+inline Vec3<V> skew_axial(const Mat3<V>& R, const Mat3<V>& X) {
+  const Mat3<V> B = transpose_times(R, X);
+  return {B(2, 1) - B(1, 2), B(0, 2) - B(2, 0), B(1, 0) - B(0, 1)};
+}
+
+// R [u]x, [u]x = [[0, -z, y], [z, 0, -x], [-y, x, 0]].
+template <typename V>
+inline Mat3<V> times_cross(const Mat3<V>& R, const Vec3<V>& u) {
+  Mat3<V> out;
+  for (int r = 0; r < 3; ++r) {
+    out(r, 0) = R(r, 1) * u.z - R(r, 2) * u.y;
+    out(r, 1) = R(r, 2) * u.x - R(r, 0) * u.z;
+    out(r, 2) = R(r, 0) * u.y - R(r, 1) * u.x;
+  }
+  return out;
+}
+
+// The rotational tangent of (G1)/(G2): R [u]x with u the damped solution of
+// A u = vex(R^T X - X^T R), A = tr(S) I - sym(S), S = R^T M, for X = G (the
+// backward) or X = dM (the forward-mode derivative). `damping` is eps.
+template <typename L>
+inline Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const Mat3<typename L::V>& R,
+                                            const Mat3<typename L::V>& M, typename L::Scalar damping) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  // |M|_F without overflow or underflow: scale by the largest entry first
+  // (lifting subnormal maxima exactly, as begin_fit does).
+  V max_abs(0);
+  for (int k = 0; k < 9; ++k) max_abs = L::max(max_abs, L::abs(M.a[k]));
+  const V lift = L::select(L::lt(max_abs, V(std::numeric_limits<T>::min())),
+                           V(std::ldexp(T(1), std::numeric_limits<T>::digits)), V(1));
+  const auto zero = L::eq(max_abs, V(0));
+  const V inv_max = L::select(zero, V(0), V(1) / (max_abs * lift));
+  Mat3<V> A;  // M / max |M_ij|
+  for (int k = 0; k < 9; ++k) A.a[k] = (M.a[k] * lift) * inv_max;
+  V frob2(0);
+  for (int k = 0; k < 9; ++k) frob2 = frob2 + A.a[k] * A.a[k];
+  const V frob = L::select(zero, V(1), L::sqrt(frob2));  // |A|_F in [1, 3]
+  // S = R^T M / |M|_F, symmetrised; K = tr(S) I - S.
+  const Mat3<V> S = transpose_times(R, A);
+  const V inv_frob = V(1) / frob;
+  const V trace = (S(0, 0) + S(1, 1) + S(2, 2)) * inv_frob;
+  const V half_inv = V(T(0.5)) * inv_frob;
+  const V k00 = trace - S(0, 0) * inv_frob, k11 = trace - S(1, 1) * inv_frob, k22 = trace - S(2, 2) * inv_frob;
+  const V k01 = -(S(0, 1) + S(1, 0)) * half_inv;
+  const V k02 = -(S(0, 2) + S(2, 0)) * half_inv;
+  const V k12 = -(S(1, 2) + S(2, 1)) * half_inv;
+  // h = K g and Q = K^2 + eps^2 I (symmetric).
+  const Vec3<V> g = skew_axial(R, X);
+  const Vec3<V> h{k00 * g.x + k01 * g.y + k02 * g.z, k01 * g.x + k11 * g.y + k12 * g.z,
+                  k02 * g.x + k12 * g.y + k22 * g.z};
+  const V eps2(damping * damping);
+  const V q00 = k00 * k00 + k01 * k01 + k02 * k02 + eps2;
+  const V q11 = k01 * k01 + k11 * k11 + k12 * k12 + eps2;
+  const V q22 = k02 * k02 + k12 * k12 + k22 * k22 + eps2;
+  const V q01 = k00 * k01 + k01 * k11 + k02 * k12;
+  const V q02 = k00 * k02 + k01 * k12 + k02 * k22;
+  const V q12 = k01 * k02 + k11 * k12 + k12 * k22;
+  // u = adj(Q) h / det Q. Q is positive definite for eps > 0; with eps = 0
+  // and A singular in floating point, the undetermined tangent is dropped.
+  const V a00 = q11 * q22 - q12 * q12, a01 = q02 * q12 - q01 * q22, a02 = q01 * q12 - q02 * q11;
+  const V a11 = q00 * q22 - q02 * q02, a12 = q01 * q02 - q00 * q12, a22 = q00 * q11 - q01 * q01;
+  const V det = q00 * a00 + q01 * a01 + q02 * a02;
+  const V inv_det = L::select(L::gt(det, V(0)), V(1) / det, V(0));
+  const Vec3<V> u{(a00 * h.x + a01 * h.y + a02 * h.z) * inv_det, (a01 * h.x + a11 * h.y + a12 * h.z) * inv_det,
+                  (a02 * h.x + a12 * h.y + a22 * h.z) * inv_det};
+  // Undo the scaling by 1 / |M|_F = inv_frob / max |M_ij|. Below |M|_F ~
+  // 1 / T_max (subnormal M) the exact derivative exceeds T's range: it
+  // saturates at +-T_max (never inf, never 0 * inf = NaN).
+  const V huge(std::numeric_limits<T>::max());
+  const V scale = L::min(lift * inv_max, huge) * inv_frob;
+  Mat3<V> tangent = times_cross(R, u);
+  for (int k = 0; k < 9; ++k) {
+    const V x = tangent.a[k] * scale;
+    tangent.a[k] = L::min(L::max(x, V(0) - huge), huge);
+  }
+  return tangent;
+}
+
+}  // namespace
+}  // namespace CPU_CAPABILITY
+}  // namespace kernel
+}  // namespace torchrot

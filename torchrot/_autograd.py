@@ -1,0 +1,143 @@
+"""Derivatives of fit_rotation: autograd, forward mode, vmap and autocast rules.
+
+The fitted rotation R maximises tr(R^T M), so S = R^T M is symmetric. Perturbing
+M by dM and R by R [w]x and keeping S symmetric gives the 3x3 system
+
+    (tr(S) I - S) w = vex(R^T dM - dM^T R),        dR = R [w]x,
+
+whose matrix has eigenvalues sigma_i + sigma_j (derivation in
+csrc/kernel/rotation_gradient.h). The map dM -> dR is self-adjoint, so one
+operator, ``torch.ops.torchrot.fit_rotation_backward(X, R, M, gradient_eps)``,
+gives the backward (X = dL/dR, result dL/dM) and the forward-mode tangent
+(X = dM, result dR). No SVD is involved. The system is solved with Tikhonov
+damping lambda = gradient_eps |M|_F, (A^2 + lambda^2 I)^-1 A, which equals the
+exact derivative up to a relative (lambda / (sigma_i + sigma_j))^2 and stays
+bounded where R is not unique (rank-deficient M, rotations by pi).
+
+No gradient flows to ``init``: the maximiser does not depend on where the
+iteration starts. With a finite ``max_iter`` the derivative is that of the
+exact maximiser, evaluated at the returned R.
+
+Registered here:
+  * ``torch.library.register_autograd`` on ``torchrot::fit_rotation`` (for
+    callers of ``torch.ops.torchrot.fit_rotation``; default damping);
+  * ``FitRotationFunction``, the ``torch.autograd.Function`` behind
+    :func:`torchrot.fit_rotation`, with a forward-mode ``jvp`` and a generated
+    vmap rule, so ``torch.func.grad / vmap / jacrev / jacfwd / jvp`` work;
+  * vmap rules for both operators, and autocast (CPU, CUDA) to float32.
+"""
+from __future__ import annotations
+
+import torch
+
+from torchrot.reference import GRADIENT_EPS
+
+
+def rotation_tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: float) -> torch.Tensor:
+    """dL/dM for X = dL/dR, or dR for X = dM, at R = fit_rotation(M).
+
+    X and R: ``(..., 3, 3)`` of the same shape; M: broadcastable to R (a
+    gradient for a broadcast M is summed back to M's shape by the caller).
+    """
+    return torch.ops.torchrot.fit_rotation_backward(X, R, M, gradient_eps)
+
+
+def _gradient_for(M: torch.Tensor, grad_M: torch.Tensor) -> torch.Tensor:
+    return grad_M if grad_M.shape == M.shape else grad_M.sum_to_size(M.shape)
+
+
+class FitRotationFunction(torch.autograd.Function):
+    """R = fit_rotation(M, init, max_iter, variant) with its derivatives in M.
+
+    ``apply(M, init, max_iter, variant, gradient_eps)``; see the module
+    docstring for the formula. ``init`` receives no gradient.
+    """
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(M, init, max_iter, variant, gradient_eps):
+        return torch.ops.torchrot.fit_rotation(M, init, max_iter, variant, gradient_eps)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        M, _, _, _, gradient_eps = inputs
+        ctx.save_for_backward(output, M)
+        ctx.save_for_forward(output, M)
+        ctx.gradient_eps = gradient_eps
+
+    @staticmethod
+    def backward(ctx, grad_R):
+        R, M = ctx.saved_tensors
+        grad_M = None
+        if ctx.needs_input_grad[0]:
+            grad_M = _gradient_for(M, rotation_tangent(grad_R, R, M, ctx.gradient_eps))
+        return grad_M, None, None, None, None
+
+    @staticmethod
+    def jvp(ctx, dM, _dinit, _max_iter, _variant, _gradient_eps):
+        R, M = ctx.saved_tensors
+        if dM is None:
+            return torch.zeros_like(R)
+        return rotation_tangent(dM.expand(R.shape), R, M, ctx.gradient_eps)
+
+
+# ---- autograd of the operator itself (torch.ops.torchrot.fit_rotation) ----
+
+
+def _op_setup_context(ctx, inputs, output):
+    ctx.save_for_backward(output, inputs[0])
+    ctx.gradient_eps = inputs[4] if len(inputs) > 4 else GRADIENT_EPS
+
+
+def _op_backward(ctx, grad_R):
+    R, M = ctx.saved_tensors
+    grad_M = None
+    if ctx.needs_input_grad[0]:
+        grad_M = _gradient_for(M, rotation_tangent(grad_R, R, M, ctx.gradient_eps))
+    return grad_M, None, None, None, None
+
+
+torch.library.register_autograd("torchrot::fit_rotation", _op_backward, setup_context=_op_setup_context)
+
+
+# ---- vmap rules: every operator takes any batch shape, so a vmapped
+# dimension just becomes the leading batch dimension ----
+
+
+def _leading(x: torch.Tensor | None, bdim: int | None, rank: int, size: int) -> torch.Tensor | None:
+    """x with its vmapped dim first, padded to ``rank`` logical dims (so it
+    broadcasts like the unbatched call); unbatched x is expanded to ``size``."""
+    if x is None:
+        return None
+    if bdim is None:
+        x = x.unsqueeze(0).expand(size, *x.shape)
+    else:
+        x = x.movedim(bdim, 0)
+    while x.dim() < rank + 1:
+        x = x.unsqueeze(1)
+    return x
+
+
+@torch.library.register_vmap("torchrot::fit_rotation")
+def _fit_rotation_vmap(info, in_dims, M, init=None, max_iter=None, variant="conservative",
+                       gradient_eps=GRADIENT_EPS):
+    in_dims = tuple(in_dims) + (None,) * (2 - len(in_dims))  # defaulted arguments have no entry
+    rank = max(M.dim() - (in_dims[0] is not None), 0 if init is None else init.dim() - (in_dims[1] is not None))
+    M = _leading(M, in_dims[0], rank, info.batch_size)
+    init = _leading(init, in_dims[1], rank, info.batch_size)
+    return torch.ops.torchrot.fit_rotation(M, init, max_iter, variant, gradient_eps), 0
+
+
+@torch.library.register_vmap("torchrot::fit_rotation_backward")
+def _fit_rotation_backward_vmap(info, in_dims, grad, R, M, gradient_eps=GRADIENT_EPS):
+    rank = max(t.dim() - (d is not None) for t, d in zip((grad, R, M), in_dims))
+    grad, R, M = (_leading(t, d, rank, info.batch_size) for t, d in zip((grad, R, M), in_dims))
+    return torch.ops.torchrot.fit_rotation_backward(grad, R, M, gradient_eps), 0
+
+
+# Under torch.autocast the fit runs in float32 (reduced precision would not
+# resolve the objective, and the kernels compute in float32 anyway).
+for _device in ("cpu", "cuda"):
+    torch.library.register_autocast("torchrot::fit_rotation", _device, torch.float32)
+    torch.library.register_autocast("torchrot::fit_rotation_info", _device, torch.float32)
