@@ -1,0 +1,514 @@
+"""Property-based tests (hypothesis) of the operator on arbitrary 3x3 matrices.
+
+Properties, for float32 and float64, at every instruction set the CPU has:
+
+* a matrix whose M (or warm start) is finite gives a rotation: finite,
+  orthonormal and det +1 to ``CRITERIA[dtype]``; in converged mode it also
+  attains the maximum of tr(R^T M) (objective shortfall against float64 SVD);
+* a matrix whose M or warm start holds NaN/Inf gives NaN in all nine entries
+  and status 3, and nothing else: its neighbours in the same SIMD block are
+  unaffected;
+* every kernel (default, avx2, avx512) gives bit-identical R, iterations and
+  status to the scalar kernel (which fits one matrix at a time);
+* scaling M by a power of two (entries staying normal) changes nothing, bit
+  for bit: the kernel normalises exactly.
+
+Inputs mix hypothesis's own "nasty" floats (signed zeros, subnormals, the
+largest finite values), matrices scaled by 2^e over the whole exponent range,
+rank-1 matrices, matrices with exactly repeated singular values (built from
+signed permutations, so that the repetition is exact in floating point),
+near-rotations and NaN/Inf entries; ``test_batched_recipes`` expands drawn
+recipes into large batches from ``torchrot.testing``'s distributions.
+
+Profiles: the default run is short and derandomised (reproducible in CI).
+``TORCHROT_FUZZ=long`` runs the long profile (random, several million
+matrices; ``.ci/fuzz-long``) and prints how many matrices were checked;
+``TORCHROT_FUZZ_SCALE=k`` multiplies its example counts by k.
+
+Convention: R (det +1) maximises tr(R^T M); column vectors.
+"""
+from __future__ import annotations
+
+import contextlib
+import itertools
+import math
+import os
+
+import pytest
+import torch
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+import torchrot
+from torchrot.reference import quaternion_rotation, rotation_svd
+from torchrot.testing import CRITERIA, DISTRIBUTIONS, make_matrices, random_rotations
+
+DTYPES = (torch.float32, torch.float64)
+VARIANTS = ("newton", "conservative", "gershgorin")
+ENV = "TORCHROT_CPU_CAPABILITY"
+ISAS = ("scalar", "default", "avx2", "avx512")
+
+
+def _supported_isas() -> tuple[str, ...]:
+    """The kernels this CPU can run (ATen's level, as csrc/cpu/dispatch.cpp maps it)."""
+    cap = torch.backends.cpu.get_cpu_capability()
+    top = {"AVX512": "avx512", "AVX2": "avx2"}.get(cap, "default")
+    return ISAS[: ISAS.index(top) + 1]
+
+
+SUPPORTED_ISAS = _supported_isas()
+LONG = os.environ.get("TORCHROT_FUZZ", "") == "long"
+SCALE = int(os.environ.get("TORCHROT_FUZZ_SCALE", "1"))
+INT_VIEW = {torch.float32: torch.int32, torch.float64: torch.int64}
+
+
+def _settings(default_examples: int, long_examples: int) -> settings:
+    """Default: few, derandomised examples; long profile: many random ones."""
+    common = dict(
+        deadline=None,
+        database=None,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+    )
+    if LONG:
+        return settings(max_examples=long_examples * SCALE, derandomize=False, **common)
+    return settings(max_examples=default_examples, derandomize=True, **common)
+
+
+# ---------------------------------------------------------------------------
+# Counting what was checked (printed by the long profile)
+# ---------------------------------------------------------------------------
+
+CHECKED = {"matrices": 0, "non_finite": 0, "kernel_calls": 0}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _report_counts(request):
+    yield
+    plugins = request.config.pluginmanager
+    reporter, capture = plugins.get_plugin("terminalreporter"), plugins.get_plugin("capturemanager")
+    if reporter is not None and capture is not None and (LONG or request.config.getoption("verbose") > 0):
+        with capture.global_and_fixture_disabled():
+            reporter.write_line(
+                f"\ntest_fuzz: {CHECKED['matrices']:,} matrices checked ({CHECKED['non_finite']:,} with NaN/Inf), "
+                f"each at {len(SUPPORTED_ISAS)} kernels {SUPPORTED_ISAS}; {CHECKED['kernel_calls']:,} kernel calls"
+            )
+
+
+# ---------------------------------------------------------------------------
+# Running every kernel and checking the properties
+# ---------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def _kernel(isa: str):
+    previous = os.environ.get(ENV)
+    os.environ[ENV] = isa
+    try:
+        yield
+    finally:
+        if previous is None:
+            del os.environ[ENV]
+        else:
+            os.environ[ENV] = previous
+
+
+def _bits(t: torch.Tensor) -> torch.Tensor:
+    return t.contiguous().view(INT_VIEW[t.dtype])
+
+
+def fit_every_kernel(M, init, max_iter, variant) -> dict:
+    """isa -> (R, iterations, status) of ``fit_rotation_info`` at each kernel."""
+    results = {}
+    for isa in SUPPORTED_ISAS:
+        with _kernel(isa):
+            assert torch.ops.torchrot.cpu_kernel() == isa
+            results[isa] = tuple(torchrot.fit_rotation_info(M, init, max_iter=max_iter, variant=variant))
+        CHECKED["kernel_calls"] += 1
+    return results
+
+
+def scale_pow2(x: torch.Tensor, exponent) -> torch.Tensor:
+    """x * 2^exponent, exact unless the result over/underflows (torch.ldexp
+    multiplies by 2.0 ** exponent, which overflows for |exponent| > 1023:
+    split into two factors)."""
+    e = torch.as_tensor(exponent, dtype=torch.float64)
+    half = torch.trunc(e / 2)
+    return torch.ldexp(torch.ldexp(x, half), e - half)
+
+
+def exactly_rescaled(M: torch.Tensor) -> torch.Tensor:
+    """Float64 copy of finite ``(n, 3, 3)`` M, each matrix scaled by a power of
+    two to max |entry| in [0.5, 1) (same maximiser; no over/underflow in the
+    SVD reference or the norms)."""
+    M64 = M.double()
+    max_abs = M64.abs().amax((-2, -1))
+    _, exponent = torch.frexp(torch.where(max_abs > 0, max_abs, torch.ones_like(max_abs)))
+    return scale_pow2(M64, -exponent.to(torch.float64)[:, None, None])
+
+
+def rotation_failures(R: torch.Tensor, M: torch.Tensor, dtype, converged: bool) -> list[str]:
+    """Why the finite results R (n, 3, 3) for finite M are not (optimal) rotations."""
+    limits = CRITERIA[dtype]
+    failures = []
+    if not bool(torch.isfinite(R).all()):
+        bad = (~torch.isfinite(R)).reshape(-1, 9).any(1).nonzero().flatten().tolist()
+        return [f"non-finite R for finite input at {bad[:5]}: M={M[bad[0]].tolist()}"]
+    Rd = R.double()
+    orth = (Rd.mT @ Rd - torch.eye(3, dtype=torch.float64)).abs().amax((-2, -1))
+    det = (torch.linalg.det(Rd) - 1).abs()
+    metrics = {"orthonormality": orth, "det": det}
+    if converged:
+        A = exactly_rescaled(M)
+        norm = A.norm(dim=(-2, -1))
+        objective = lambda Q: (Q * A).sum((-2, -1))  # noqa: E731
+        shortfall = (objective(rotation_svd(A)) - objective(Rd)) / torch.where(norm > 0, norm, 1.0)
+        metrics["shortfall"] = shortfall
+    for name, values in metrics.items():
+        if values.numel() and not bool((values <= limits[name]).all()):
+            i = int(values.argmax())
+            failures.append(f"{name} {values[i].item():.3g} > {limits[name]:g} at matrix {i}: M={M[i].tolist()}")
+    return failures
+
+
+def check_fit(M: torch.Tensor, init: torch.Tensor | None, max_iter, variant, what: str = "") -> None:
+    """All properties for ``(n, 3, 3)`` M and optional init broadcastable to it."""
+    dtype = M.dtype
+    n = M.shape[0]
+    results = fit_every_kernel(M, init, max_iter, variant)
+    R, iterations, status = results["scalar"]
+    context = f"{what} {dtype} n={n} max_iter={max_iter} variant={variant} warm={init is not None}"
+
+    non_finite = ~torch.isfinite(M).reshape(n, 9).all(1)
+    if init is not None:
+        non_finite |= ~torch.isfinite(init.expand(M.shape)).reshape(n, 9).all(1)
+    CHECKED["matrices"] += n
+    CHECKED["non_finite"] += int(non_finite.sum())
+
+    # NaN exactly where the input had NaN/Inf, in all nine entries
+    R_nan = torch.isnan(R).reshape(n, 9)
+    assert bool(R_nan[non_finite].all()), f"{context}: non-finite input without an all-NaN result"
+    assert torch.equal(status == 3, non_finite), f"{context}: status 3 != non-finite input"
+    finite = ~non_finite
+    assert not bool(R_nan[finite].any()), (
+        f"{context}: NaN for finite input at {R_nan[finite].any(1).nonzero().flatten().tolist()[:5]}"
+    )
+    assert bool((status[finite] <= 1).all()), f"{context}: status {status[finite].unique().tolist()}"
+
+    converged = max_iter is None
+    cap = 36 if converged else max_iter
+    most = int(iterations.max()) if n else 0
+    assert most <= cap, f"{context}: {most} steps > {cap}"
+    if not converged:
+        assert not bool((status == 1).any()), f"{context}: fallback outside converged mode"
+
+    failures = rotation_failures(R[finite], M[finite], dtype, converged)
+    assert not failures, f"{context}: " + "; ".join(failures)
+
+    for isa, got in results.items():
+        for name, a, b in zip(("R", "iterations", "status"), got, (R, iterations, status)):
+            same = torch.equal(_bits(a), _bits(b)) if name == "R" else torch.equal(a, b)
+            if not same:
+                bad = (_bits(a) != _bits(b)).reshape(n, -1).any(1) if name == "R" else (a != b)
+                i = int(bad.nonzero()[0])
+                pytest.fail(f"{context}: {isa} {name} differs from scalar at matrix {i}: M={M[i].tolist()}, "
+                            f"{isa} {a[i].tolist()} vs scalar {b[i].tolist()}")
+
+
+# ---------------------------------------------------------------------------
+# Strategies
+# ---------------------------------------------------------------------------
+
+
+def _signed_permutations() -> list[torch.Tensor]:
+    mats = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            P = torch.zeros(3, 3, dtype=torch.float64)
+            for row, col in enumerate(perm):
+                P[row, col] = signs[row]
+            mats.append(P)
+    return mats
+
+
+SIGNED_PERMUTATIONS = _signed_permutations()  # 48, exact in any precision
+CUBE_ROTATIONS = [P for P in SIGNED_PERMUTATIONS if torch.linalg.det(P) > 0]  # 24
+
+
+def _floats(dtype, **kw):
+    return st.floats(width=32 if dtype == torch.float32 else 64, **kw)
+
+
+def _exponent_range(dtype):
+    """(lo, hi): 2^lo is the smallest subnormal, 2^hi overflows."""
+    info = torch.finfo(dtype)
+    mantissa_bits = round(-math.log2(info.eps))
+    return round(math.log2(info.smallest_normal)) - mantissa_bits, round(math.log2(info.max)) + 1
+
+
+@st.composite
+def _elementwise(draw, dtype):
+    """Nine independent floats: hypothesis favours 0, -0, subnormals, max, ..."""
+    return torch.tensor(draw(st.lists(_floats(dtype, allow_nan=False, allow_infinity=False), min_size=9,
+                                      max_size=9)), dtype=torch.float64).view(3, 3)
+
+
+@st.composite
+def _scaled(draw, dtype):
+    """A matrix of O(1) entries (some exactly 0) times 2^e over the whole
+    exponent range of the dtype, down to subnormals (where entries lose
+    bits or vanish) and up to overflow (Inf after the cast, expected NaN)."""
+    lo, hi = _exponent_range(dtype)
+    entries = draw(st.lists(st.one_of(st.just(0.0), st.floats(-1, 1)), min_size=9, max_size=9))
+    exponent = draw(st.integers(lo, hi))
+    return scale_pow2(torch.tensor(entries, dtype=torch.float64), exponent).view(3, 3)
+
+
+@st.composite
+def _repeated_singular_values(draw, dtype):
+    """P1 B P2 with signed permutations P1, P2 and B = diag(a, a, b),
+    a I, or a similarity block [[a, -b], [b, a]] (+) c (singular values
+    sqrt(a^2 + b^2) twice): repeated singular values, exact in floating point."""
+    value = _floats(dtype, allow_nan=False, allow_infinity=False)
+    a, b, c = draw(value), draw(value), draw(value)
+    kind = draw(st.sampled_from(["aab", "aaa", "similarity"]))
+    if kind == "aab":
+        B = torch.diag(torch.tensor([a, a, b], dtype=torch.float64))
+    elif kind == "aaa":
+        B = a * torch.eye(3, dtype=torch.float64)
+    else:
+        B = torch.tensor([[a, -b, 0.0], [b, a, 0.0], [0.0, 0.0, c]], dtype=torch.float64)
+    P1, P2 = draw(st.sampled_from(SIGNED_PERMUTATIONS)), draw(st.sampled_from(SIGNED_PERMUTATIONS))
+    return P1 @ B @ P2
+
+
+@st.composite
+def _rank_one(draw, dtype):
+    unit = st.one_of(st.just(0.0), st.floats(-1, 1))
+    u = torch.tensor(draw(st.lists(unit, min_size=3, max_size=3)), dtype=torch.float64)
+    v = torch.tensor(draw(st.lists(unit, min_size=3, max_size=3)), dtype=torch.float64)
+    lo, hi = _exponent_range(dtype)
+    return scale_pow2(torch.outer(u, v), draw(st.integers(lo, hi)))
+
+
+@st.composite
+def _quaternion_rotation(draw):
+    """A rotation from a drawn quaternion (float64), or a cube rotation (exact)."""
+    if draw(st.booleans()):
+        return draw(st.sampled_from(CUBE_ROTATIONS))
+    q = torch.tensor(draw(st.lists(st.floats(-1, 1), min_size=4, max_size=4)), dtype=torch.float64)
+    if float(q.norm()) < 1e-3:
+        q = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    q = q / q.norm()
+    return quaternion_rotation(q)
+
+
+@st.composite
+def _near_rotation(draw, dtype):
+    """A rotation times a positive scale plus a tiny perturbation (the warm
+    data of local-global solvers, at any magnitude)."""
+    R = draw(_quaternion_rotation())
+    noise = torch.tensor(draw(st.lists(st.floats(-1e-6, 1e-6), min_size=9, max_size=9)), dtype=torch.float64)
+    lo, hi = _exponent_range(dtype)
+    return scale_pow2(R + noise.view(3, 3), draw(st.integers(lo + 30, hi - 2)))
+
+
+@st.composite
+def _with_non_finite(draw, base):
+    """``base`` with 1-9 entries replaced by NaN, +Inf or -Inf."""
+    M = draw(base).clone().view(9)
+    for index in draw(st.lists(st.integers(0, 8), min_size=1, max_size=9)):
+        M[index] = draw(st.sampled_from([math.nan, math.inf, -math.inf]))
+    return M.view(3, 3)
+
+
+def matrices(dtype):
+    finite = st.one_of(
+        _elementwise(dtype), _scaled(dtype), _repeated_singular_values(dtype), _rank_one(dtype),
+        _near_rotation(dtype),
+    )
+    return st.one_of(finite, _with_non_finite(finite))
+
+
+@st.composite
+def warm_starts(draw, n: int, dtype):
+    """``(n, 3, 3)`` rotations (a few with NaN/Inf entries), or one ``(3, 3)``
+    rotation broadcast to the batch."""
+    if n and draw(st.integers(0, 4)) == 0:
+        return draw(_quaternion_rotation()).to(dtype)
+    inits = []
+    for _ in range(n):
+        R = draw(_quaternion_rotation())
+        if draw(st.integers(0, 9)) == 0:
+            R = draw(_with_non_finite(st.just(R)))
+        inits.append(R)
+    return torch.stack(inits).to(dtype) if inits else torch.empty(0, 3, 3, dtype=dtype)
+
+
+@st.composite
+def problems(draw, dtype, max_size=40):
+    """(M (n, 3, 3), init or None, max_iter, variant) for n in 0..max_size."""
+    Ms = draw(st.lists(matrices(dtype), min_size=0, max_size=max_size))
+    M = torch.stack(Ms).to(dtype) if Ms else torch.empty(0, 3, 3, dtype=dtype)
+    init = draw(warm_starts(M.shape[0], dtype)) if draw(st.booleans()) else None
+    max_iter = draw(st.sampled_from([None, None, 1, 2, 5]))
+    variant = draw(st.sampled_from(VARIANTS))
+    return M, init, max_iter, variant
+
+
+# ---------------------------------------------------------------------------
+# Tests
+# ---------------------------------------------------------------------------
+
+
+def _dtype_id(dtype):
+    return str(dtype).removeprefix("torch.")
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+def test_arbitrary_matrices(dtype):
+    """Batches of 0-40 drawn matrices (every kind mixed in the same SIMD
+    blocks), cold or warm, every mode and variant."""
+
+    @_settings(default_examples=60, long_examples=4000)
+    @given(problems(dtype))
+    def run(problem):
+        check_fit(*problem, what="arbitrary")
+
+    run()
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+def test_power_of_two_scaling_is_exact(dtype):
+    """fit(2^k1 M) == fit(2^k2 M) bit for bit (R, iterations, status) for all
+    k1, k2 that keep every non-zero entry normal, and the reciprocal of the
+    largest: the kernel normalises by the largest entry exactly, and nothing
+    else depends on the scale. (Near the largest finite value the reciprocal
+    is subnormal, so bits may differ there; the result is still optimal.)"""
+    info = torch.finfo(dtype)
+    lo, hi = _exponent_range(dtype)
+    normal_lo = round(math.log2(info.smallest_normal))  # 2^normal_lo: smallest normal
+
+    def exponents(M: torch.Tensor) -> tuple[int, int] | None:
+        """(smallest, largest) binary exponent of M's non-zero entries, if all are normal."""
+        a = M.double().abs().flatten()
+        a = a[a > 0]
+        if a.numel() == 0 or not bool(((a >= info.smallest_normal) & (a <= info.max)).all()):
+            return None
+        _, e = torch.frexp(a)  # a = f 2^e, f in [0.5, 1)
+        return int(e.min()) - 1, int(e.max()) - 1
+
+    @_settings(default_examples=40, long_examples=2000)
+    @given(st.one_of(_elementwise(dtype), _scaled(dtype), _repeated_singular_values(dtype), _near_rotation(dtype)),
+           st.data(), st.sampled_from([None, 1]), st.sampled_from(VARIANTS))
+    def run(M64, data, max_iter, variant):
+        M = M64.to(dtype)
+        span = exponents(M)
+        assume(span is not None)
+        # 2^k M is usable if its entries 2^(e+k) are normal (e_min + k >=
+        # normal_lo, e_max + k <= hi - 2) and so is 1 / max (e_max + k + 1 <= -normal_lo)
+        k_lo, k_hi = normal_lo - span[0], min(hi - 2, -normal_lo - 1) - span[1]
+        assume(k_lo <= k_hi)
+        k1 = data.draw(st.integers(k_lo, k_hi), label="k1")
+        k2 = data.draw(st.integers(k_lo, k_hi), label="k2")
+        A, B = (scale_pow2(M.double(), k).to(dtype) for k in (k1, k2))
+        assert exponents(A) is not None and exponents(B) is not None
+        for isa in SUPPORTED_ISAS:
+            with _kernel(isa):
+                a = torchrot.fit_rotation_info(A[None], max_iter=max_iter, variant=variant)
+                b = torchrot.fit_rotation_info(B[None], max_iter=max_iter, variant=variant)
+            assert torch.equal(_bits(a.R), _bits(b.R)), f"{isa}: 2^{k1} M and 2^{k2} M differ: M={M.tolist()}"
+            assert torch.equal(a.iterations, b.iterations) and torch.equal(a.status, b.status)
+        CHECKED["matrices"] += 2
+
+    run()
+
+
+# Per-matrix generators for the batched recipes: the shared distributions of
+# torchrot.testing plus exact constructions that hypothesis draws one at a time.
+def _exact_repeated(n: int, gen: torch.Generator) -> torch.Tensor:
+    P = torch.stack(SIGNED_PERMUTATIONS)
+    a = torch.randn(n, generator=gen, dtype=torch.float64)
+    b = torch.where(torch.rand(n, generator=gen, dtype=torch.float64) < 0.3, a,
+                    torch.randn(n, generator=gen, dtype=torch.float64))
+    D = torch.diag_embed(torch.stack([a, a, b], -1))
+    i, j = torch.randint(0, 48, (2, n), generator=gen)
+    return P[i] @ D @ P[j]
+
+
+def _signed_permutation_matrices(n: int, gen: torch.Generator) -> torch.Tensor:
+    scale = torch.randn(n, 1, 1, generator=gen, dtype=torch.float64)
+    return torch.stack(SIGNED_PERMUTATIONS)[torch.randint(0, 48, (n,), generator=gen)] * scale
+
+
+BATCH_KINDS = {**DISTRIBUTIONS, "exact_repeated": _exact_repeated, "signed_permutation": _signed_permutation_matrices}
+
+
+def special_values(dtype) -> torch.Tensor:
+    info = torch.finfo(dtype)
+    sub = info.smallest_normal * info.eps  # smallest subnormal
+    values = [0.0, -0.0, 1.0, -1.0, sub, -sub, 3 * sub, info.smallest_normal, -info.smallest_normal,
+              info.smallest_normal / 3, info.max, -info.max, info.max / 3, info.eps, 1 + info.eps]
+    return torch.tensor(values, dtype=torch.float64)
+
+
+def batched_problem(seed: int, n: int, dtype, p_special: float, p_non_finite: float, exponent_spread: int,
+                    warm: bool):
+    """(M, init): n matrices of every kind in BATCH_KINDS, shuffled, each scaled
+    by 2^e (|e| <= exponent_spread, within the dtype's range), a fraction
+    p_special of entries replaced by special values (+-0, subnormals, max,
+    ...) and p_non_finite by NaN/+-Inf (in init as well, when warm)."""
+    gen = torch.Generator().manual_seed(seed)
+    kinds = list(BATCH_KINDS.values())
+    per = -(-n // len(kinds))
+    M = torch.cat([kind(per, gen) for kind in kinds])[torch.randperm(per * len(kinds), generator=gen)[:n]]
+    lo, hi = _exponent_range(dtype)
+    e = torch.randint(-exponent_spread, exponent_spread + 1, (n, 1, 1), generator=gen).clamp(lo, hi - 4)
+    M = scale_pow2(M, e.double())
+    flat = M.view(n, 9)
+    specials = special_values(dtype)
+    mask = torch.rand(n, 9, generator=gen) < p_special
+    flat[mask] = specials[torch.randint(0, len(specials), (int(mask.sum()),), generator=gen)]
+    non_finite = torch.tensor([math.nan, math.inf, -math.inf], dtype=torch.float64)
+    mask = torch.rand(n, 9, generator=gen) < p_non_finite
+    flat[mask] = non_finite[torch.randint(0, 3, (int(mask.sum()),), generator=gen)]
+    init = None
+    if warm:
+        init = random_rotations(n, gen).view(n, 9)
+        mask = torch.rand(n, 9, generator=gen) < p_non_finite
+        init[mask] = non_finite[torch.randint(0, 3, (int(mask.sum()),), generator=gen)]
+        init = init.view(n, 3, 3).to(dtype)
+    return M.to(dtype), init
+
+
+BATCH_SIZE = 65536 if LONG else 2048
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+def test_batched_recipes(dtype):
+    """Drawn recipes (seed, special-value and NaN/Inf rates, exponent spread,
+    cold/warm, mode, variant) expanded to batches of every distribution."""
+    lo, hi = _exponent_range(dtype)
+
+    @_settings(default_examples=6, long_examples=60)
+    @given(seed=st.integers(0, 2**32 - 1), p_special=st.sampled_from([0.0, 0.002, 0.05, 0.3]),
+           p_non_finite=st.sampled_from([0.0, 0.0005, 0.01]), spread=st.sampled_from([0, 8, 60, hi - lo]),
+           warm=st.booleans(), max_iter=st.sampled_from([None, None, 1, 3]), variant=st.sampled_from(VARIANTS))
+    def run(seed, p_special, p_non_finite, spread, warm, max_iter, variant):
+        M, init = batched_problem(seed, BATCH_SIZE, dtype, p_special, p_non_finite, spread, warm)
+        check_fit(M, init, max_iter, variant, what=f"batched seed={seed}")
+
+    run()
+
+
+def test_batched_problem_has_what_it_promises():
+    """The recipes draw every distribution of torchrot.testing, and their
+    knobs do what they say (guards the fuzzing against going vacuous)."""
+    assert set(DISTRIBUTIONS) <= set(BATCH_KINDS)
+    M, init = batched_problem(0, 4096, torch.float32, 0.0, 0.0, 0, False)
+    assert init is None and bool(torch.isfinite(M).all())
+    M, init = batched_problem(1, 4096, torch.float32, 0.05, 0.01, 300, True)
+    entries = M.abs()[torch.isfinite(M)]
+    assert bool(torch.isnan(M).any()) and bool(torch.isinf(M).any()) and bool((~torch.isfinite(init)).any())
+    assert bool(((entries > 0) & (entries < torch.finfo(torch.float32).smallest_normal)).any())  # subnormals
+    assert bool((entries == torch.finfo(torch.float32).max).any())
+    assert bool((M == 0).any()) and bool((torch.signbit(M) & (M == 0)).any())  # +-0
