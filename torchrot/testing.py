@@ -197,3 +197,52 @@ def make_warm_start(name: str, n: int, seed: int = 0, dtype: torch.dtype = torch
     M0 = make_matrices(name, n, seed, torch.float64)
     init = random_rotations(n, torch.Generator().manual_seed(seed + 7919))
     return (init @ M0).to(dtype), init.to(dtype)
+
+
+def _singular_value_family(sigma: Callable[[int, torch.Generator], torch.Tensor]) -> Generator:
+    return lambda n, gen: _with_singular_values(n, gen, sigma(n, gen))
+
+
+def _scaled_rotation(n: int, gen: torch.Generator) -> torch.Tensor:
+    """s R: all three singular values equal (M = I is the special case)."""
+    return random_rotations(n, gen) * (torch.rand(n, 1, 1, generator=gen, dtype=torch.float64) + 0.5)
+
+
+def _sigma_repeated(n: int, gen: torch.Generator) -> torch.Tensor:
+    a, b = torch.rand(2, n, generator=gen, dtype=torch.float64) + 0.1
+    return torch.stack([a, a, b], -1)
+
+
+def _sigma_half_turn(n: int, gen: torch.Generator) -> torch.Tensor:
+    """sigma_2 + sigma_3 = 0 up to 1e-9..1: det < 0 and the fitted R is (near) a
+    half-turn away from U V^T, where R is not (or barely) unique."""
+    a = torch.rand(n, generator=gen, dtype=torch.float64) + 0.5
+    gap = 10.0 ** (-9 * torch.rand(n, generator=gen, dtype=torch.float64))
+    return torch.stack([a + 1, a, gap - a], -1)
+
+
+#: name -> generator of float64 ``(n, 3, 3)`` matrices where the derivative of
+#: R(M) degenerates: SVD-based gradients are NaN or unbounded there (repeated
+#: singular values) and R(M) itself is not unique or barely (sigma_i + sigma_j
+#: ~ 0). The autograd tests fuzz fit_rotation's backward on these.
+DEGENERATE_FAMILIES: dict[str, Generator] = {
+    "identity": lambda n, gen: torch.eye(3, dtype=torch.float64).expand(n, 3, 3).clone(),
+    "scaled_rotation": _scaled_rotation,
+    "repeated_sigma": _singular_value_family(_sigma_repeated),
+    "half_turn": _singular_value_family(_sigma_half_turn),
+    "rank2": _rank2,
+    "rank1": _rank1,
+    "zero": lambda n, gen: torch.zeros(n, 3, 3, dtype=torch.float64),
+    "det_negative": _gaussian_det_negative,
+    "ill_conditioned": _ill_conditioned,
+    "tiny": _scaled(_gaussian, 1e-30),
+    "huge": _scaled(_gaussian, 1e30),
+}
+
+
+def make_degenerate_matrices(name: str, n: int, seed: int = 0, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """``(n, 3, 3)`` matrices of family ``name`` of DEGENERATE_FAMILIES."""
+    if name not in DEGENERATE_FAMILIES:
+        raise ValueError(f"unknown family {name!r}; known: {sorted(DEGENERATE_FAMILIES)}")
+    gen = torch.Generator().manual_seed(seed)
+    return DEGENERATE_FAMILIES[name](n, gen).to(dtype)

@@ -1,0 +1,410 @@
+"""Derivatives of fit_rotation through the optimality condition (R^T M symmetric).
+
+Checked against finite differences (gradcheck, float64), autograd through
+float64 SVD where that is finite, RoMa's special_procrustes, the pure-PyTorch
+reference, and across kernels (bit-identical to the scalar build). Then the
+degenerate inputs where SVD gradients fail (repeated singular values,
+rank-deficient M, half-turns), torch.func, torch.compile, autocast, and errors.
+"""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch.func import grad, jacfwd, jacrev, jvp, vmap
+
+import torchrot
+from torchrot.reference import GRADIENT_EPS, fit_rotation_backward_reference
+from torchrot.testing import (
+    DEGENERATE_FAMILIES,
+    make_degenerate_matrices,
+    make_matrices,
+    make_warm_start,
+    random_rotations,
+)
+
+op = torch.ops.torchrot
+DTYPES = (torch.float32, torch.float64)
+ISAS = ("scalar", "default", "avx2", "avx512")
+SMOOTH = ("warm", "rot60", "uniform", "gaussian", "det_negative", "symmetric")
+
+
+def _dtype_id(dtype):
+    return str(dtype).removeprefix("torch.")
+
+
+def _svd_gradient(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    M = M.detach().clone().requires_grad_()
+    torchrot.rotation_svd(M).backward(G)
+    return M.grad
+
+
+def _gradient(M: torch.Tensor, G: torch.Tensor, **kwargs) -> torch.Tensor:
+    M = M.detach().clone().requires_grad_()
+    torchrot.fit_rotation(M, **kwargs).backward(G)
+    return M.grad
+
+
+def _smallest_pair_sum(M: torch.Tensor) -> torch.Tensor:
+    """min sigma_i + sigma_j (signed smallest singular value), relative to |M|_F."""
+    sigma = torch.linalg.svdvals(M.double())
+    sign = torch.sign(torch.linalg.det(M.double()))
+    return (sigma[..., 1] + sign * sigma[..., 2]) / M.double().norm(dim=(-2, -1))
+
+
+# ---------------------------------------------------------------------------
+# Exactness where the gradient exists
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", SMOOTH)
+def test_gradcheck_random(name):
+    M = make_matrices(name, 6, seed=3).requires_grad_()
+    assert torch.autograd.gradcheck(torchrot.fit_rotation, (M,), eps=1e-6, atol=1e-8, rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "M",
+    [
+        torch.eye(3),
+        torch.diag(torch.tensor([2.0, 2.0, 1.0])),  # repeated singular values: SVD backward is NaN here
+        torch.diag(torch.tensor([3.0, 3.0, 3.0])) @ random_rotations(1, torch.Generator().manual_seed(0))[0].float(),
+        torch.diag(torch.tensor([3.0, 2.0, -1.0])),  # det < 0
+        torch.diag(torch.tensor([-2.0, -2.0, 5.0])),  # det > 0, R a half-turn from I
+    ],
+    ids=["identity", "diag221", "scaled_rotation", "det_negative", "half_turn_pair"],
+)
+def test_gradcheck_structured(M):
+    M = M.double().requires_grad_()
+    assert torch.autograd.gradcheck(torchrot.fit_rotation, (M,), eps=1e-6, atol=1e-8, rtol=1e-6)
+
+
+def test_matches_svd_autograd_where_finite():
+    """Agrees with autograd through float64 SVD to 1e-8 relative (undamped
+    and with the default damping) where singular values are distinct and
+    sigma_i + sigma_j is well away from 0."""
+    M = torch.cat([make_matrices(name, 300, seed=5) for name in SMOOTH])
+    keep = _smallest_pair_sum(M) > 1e-2
+    M = M[keep]
+    G = torch.randn(M.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    expected = _svd_gradient(M, G)
+    finite = torch.isfinite(expected).all(-1).all(-1)
+    assert finite.float().mean() > 0.99
+    scale = expected.norm(dim=(-2, -1), keepdim=True)
+    for eps in (0.0, GRADIENT_EPS):
+        got = _gradient(M, G, gradient_eps=eps)
+        err = ((got - expected).norm(dim=(-2, -1), keepdim=True) / scale)[finite]
+        assert err.max() < 1e-8, f"gradient_eps={eps}: max relative error {err.max():.3g}"
+
+
+def test_matches_roma_special_procrustes():
+    roma = pytest.importorskip("roma")
+    M = make_matrices("uniform", 500, seed=2)
+    G = torch.randn(M.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    Mr = M.clone().requires_grad_()
+    roma.special_procrustes(Mr).backward(G)
+    got = _gradient(M, G)
+    err = (got - Mr.grad).norm(dim=(-2, -1)) / Mr.grad.norm(dim=(-2, -1))
+    # RoMa damps its SVD backward (gradient_eps=1e-5 on sigma differences).
+    assert err.median() < 1e-9 and err.max() < 1e-4
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+def test_jacobian_is_rotational_tangent(dtype):
+    """dR = R [w]x: R^T dR is skew for every direction dM."""
+    M = make_matrices("gaussian", 20, seed=4, dtype=dtype)
+    R = torchrot.fit_rotation(M)
+    dM = torch.randn(M.shape, generator=torch.Generator().manual_seed(4), dtype=dtype)
+    dR = op.fit_rotation_backward(dM, R, M, GRADIENT_EPS)
+    W = R.mT @ dR
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    assert (W + W.mT).abs().max() <= tol * W.abs().max()
+
+
+def test_init_receives_no_gradient():
+    M, init = make_warm_start("warm", 10, seed=1)
+    M.requires_grad_()
+    init.requires_grad_()
+    torchrot.fit_rotation(M, init).sum().backward()
+    assert M.grad is not None and init.grad is None
+
+
+def test_broadcast_init_gradient_shape():
+    M = make_matrices("rot60", 4, seed=1).reshape(2, 2, 3, 3).requires_grad_()
+    init = torch.eye(3, dtype=torch.float64)
+    torchrot.fit_rotation(M, init, max_iter=3).sum().backward()
+    assert M.grad.shape == M.shape and torch.isfinite(M.grad).all()
+
+
+# ---------------------------------------------------------------------------
+# The derivative operator: kernels, reference, layouts, dtypes
+# ---------------------------------------------------------------------------
+
+
+def _backward_case(n, dtype, seed=0):
+    M = make_matrices("gaussian", n, seed=seed, dtype=dtype)
+    R = torchrot.fit_rotation(M)
+    G = torch.randn(M.shape, generator=torch.Generator().manual_seed(seed + 1), dtype=torch.float64).to(dtype)
+    return G, R, M
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+def test_kernel_matches_reference(dtype):
+    G, R, M = _backward_case(2000, dtype)
+    got = op.fit_rotation_backward(G, R, M, GRADIENT_EPS)
+    ref = fit_rotation_backward_reference(G.double(), R.double(), M.double(), GRADIENT_EPS)
+    # float32 rounding is amplified by the system's condition 1 / min(sigma_i + sigma_j).
+    cond = 1 / _smallest_pair_sum(M).clamp_min(1e-3)
+    tol = (3e-5 if dtype == torch.float32 else 1e-13) * cond
+    err = (got.double() - ref).norm(dim=(-2, -1)) / ref.norm(dim=(-2, -1))
+    assert (err <= tol).all(), f"max error {err.max():.3g}"
+
+
+def _supported_isas():
+    hardware = {"AVX512": "avx512", "AVX2": "avx2"}.get(torch.backends.cpu.get_cpu_capability(), "default")
+    return ISAS[: ISAS.index(hardware) + 1]
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+def test_every_kernel_bit_identical_to_scalar(dtype, monkeypatch):
+    """All tail lengths 0..70, contiguous and strided layouts."""
+    G, R, M = _backward_case(70, dtype, seed=7)
+    G_strided = G.mT.contiguous().mT  # column-major entries
+    for isa in _supported_isas()[1:]:
+        for n in range(0, 71):
+            for g in (G[:n], G_strided[:n]):
+                monkeypatch.setenv("TORCHROT_CPU_CAPABILITY", "scalar")
+                expected = op.fit_rotation_backward(g, R[:n], M[:n], GRADIENT_EPS)
+                monkeypatch.setenv("TORCHROT_CPU_CAPABILITY", isa)
+                assert op.cpu_kernel() == isa
+                got = op.fit_rotation_backward(g, R[:n], M[:n], GRADIENT_EPS)
+                assert torch.equal(got, expected), f"{isa}, n={n}"
+
+
+def test_expanded_gradient_and_broadcast_M():
+    """A loss like R.sum() gives a stride-0 gradient; M may broadcast to R."""
+    G, R, M = _backward_case(33, torch.float64)
+    ones = torch.ones(1, 1, 1, dtype=torch.float64).expand(R.shape)
+    assert torch.equal(op.fit_rotation_backward(ones, R, M, 1e-6),
+                       op.fit_rotation_backward(ones.contiguous(), R, M, 1e-6))
+    single = M[:1]
+    assert torch.equal(op.fit_rotation_backward(G, R, single, 1e-6),
+                       op.fit_rotation_backward(G, R, single.expand(R.shape).contiguous(), 1e-6))
+
+
+def test_out_aliasing_and_threads():
+    G, R, M = _backward_case(5000, torch.float32, seed=9)
+    expected = op.fit_rotation_backward(G, R, M, 1e-6)
+    previous = torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            assert torch.equal(op.fit_rotation_backward(G, R, M, 1e-6), expected)
+    finally:
+        torch.set_num_threads(previous)
+
+
+@pytest.mark.parametrize("dtype", (torch.float16, torch.bfloat16), ids=_dtype_id)
+def test_reduced_precision_backward(dtype):
+    G, R, M = _backward_case(50, torch.float32)
+    got = op.fit_rotation_backward(G.to(dtype), R.to(dtype), M.to(dtype), 1e-6)
+    expected = op.fit_rotation_backward(G.to(dtype).float(), R.to(dtype).float(), M.to(dtype).float(), 1e-6)
+    assert got.dtype == dtype and torch.equal(got, expected.to(dtype))
+
+
+def test_empty_batch():
+    M = torch.empty(0, 3, 3, requires_grad=True)
+    torchrot.fit_rotation(M).sum().backward()
+    assert M.grad.shape == (0, 3, 3)
+
+
+# ---------------------------------------------------------------------------
+# Degenerate inputs: finite, bounded, NaN only from NaN
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+def test_degenerate_fuzz_finite_and_bounded(dtype):
+    """>= 1e5 matrices over every degenerate family: no NaN/Inf gradient, and
+    |dL/dM|_F <= sqrt(2) |G|_F / (gradient_eps |M|_F) (the damping's bound)."""
+    per_family = 100_000 // len(DEGENERATE_FAMILIES) + 1
+    M = torch.cat([make_degenerate_matrices(name, per_family, seed=11, dtype=dtype)
+                   for name in DEGENERATE_FAMILIES])
+    assert M.shape[0] >= 100_000
+    G = torch.randn(M.shape, generator=torch.Generator().manual_seed(12), dtype=dtype)
+    got = _gradient(M, G)
+    assert torch.isfinite(got).all(), f"{int((~torch.isfinite(got)).sum())} non-finite entries"
+    norm_M = M.double().norm(dim=(-2, -1))
+    bound = 1.5 * G.double().norm(dim=(-2, -1)) / (GRADIENT_EPS * norm_M)
+    nonzero = norm_M > 0
+    assert (got.double().norm(dim=(-2, -1))[nonzero] <= bound[nonzero]).all()
+    assert (got[~nonzero] == 0).all()  # M = 0: every rotation is optimal, nothing moves it
+
+
+def test_damping_bound_and_limit():
+    """At an exact half-turn ambiguity (sigma_2 + sigma_3 = 0) the gradient is
+    bounded by 1 / gradient_eps; where the system is regular, damping -> 0
+    converges to the exact gradient."""
+    M = torch.diag(torch.tensor([2.0, 1.0, -1.0], dtype=torch.float64))
+    G = torch.randn(3, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    for eps in (1e-2, 1e-4, 1e-6):
+        g = _gradient(M, G, gradient_eps=eps)
+        assert torch.isfinite(g).all()
+        assert g.norm() <= 1.5 * G.norm() / (eps * M.norm())
+    M = make_matrices("uniform", 50, seed=8)
+    G = torch.randn(M.shape, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
+    exact = _gradient(M, G, gradient_eps=0.0)
+    errors = [(_gradient(M, G, gradient_eps=eps) - exact).norm() / exact.norm() for eps in (1e-2, 1e-3, 1e-4)]
+    # Tikhonov damping: the error falls quadratically, (lambda / (sigma_i + sigma_j))^2.
+    assert errors[0] / errors[1] > 50 and errors[1] / errors[2] > 50 and errors[2] < 1e-6
+
+
+def test_nan_only_where_input_nan():
+    M = make_matrices("gaussian", 40, seed=6)
+    M[3, 1, 2] = float("nan")
+    M[17, 0, 0] = float("inf")
+    M.requires_grad_()
+    torchrot.fit_rotation(M).sum().backward()
+    bad = torch.zeros(40, dtype=torch.bool)
+    bad[[3, 17]] = True
+    assert torch.isnan(M.grad[bad]).all()
+    assert torch.isfinite(M.grad[~bad]).all()
+
+
+def test_subnormal_input_saturates_instead_of_overflowing():
+    M = torch.full((3, 3), 1e-40, dtype=torch.float32) + torch.diag(torch.tensor([3e-40, 0.0, 0.0]))
+    g = _gradient(M, torch.ones(3, 3))
+    assert not torch.isnan(g).any() and not torch.isinf(g).any()
+
+
+# ---------------------------------------------------------------------------
+# torch.func, torch.compile, autocast, forward mode
+# ---------------------------------------------------------------------------
+
+
+def _weights():
+    return torch.arange(1.0, 10.0, dtype=torch.float64).view(3, 3)
+
+
+def _loss(M):
+    return (torchrot.fit_rotation(M) * _weights()).sum()
+
+
+def test_func_grad_and_vmap():
+    M = make_matrices("rot60", 8, seed=2)
+    per_matrix = vmap(grad(_loss))(M)
+    for i in range(8):
+        expected = _svd_gradient(M[i], _weights().expand(3, 3))
+        torch.testing.assert_close(per_matrix[i], expected, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("transform", [jacrev, jacfwd], ids=["jacrev", "jacfwd"])
+def test_func_jacobians_match_svd(transform):
+    M = make_matrices("uniform", 1, seed=3)[0]
+    J = transform(torchrot.fit_rotation)(M)
+    J_svd = jacrev(torchrot.rotation_svd)(M)
+    torch.testing.assert_close(J, J_svd, rtol=1e-9, atol=1e-10)
+
+
+def test_func_jvp_and_forward_ad():
+    M = make_matrices("gaussian", 5, seed=4)
+    dM = torch.randn(M.shape, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    R, dR = jvp(torchrot.fit_rotation, (M,), (dM,))
+    _, dR_svd = jvp(torchrot.rotation_svd, (M,), (dM,))
+    torch.testing.assert_close(R, torchrot.fit_rotation(M))
+    torch.testing.assert_close(dR, dR_svd, rtol=1e-8, atol=1e-10)
+    import torch.autograd.forward_ad as fwAD
+
+    with fwAD.dual_level():
+        out = torchrot.fit_rotation(fwAD.make_dual(M, dM))
+        torch.testing.assert_close(fwAD.unpack_dual(out).tangent, dR, rtol=0, atol=0)
+
+
+def test_vmap_with_batched_init():
+    M, init = make_warm_start("warm", 12, seed=5)
+    M, init = M.view(3, 4, 3, 3), init.view(3, 4, 3, 3)
+    for in_dims, args in (((0, 0), (M, init)), ((None, 0), (M[0], init)), ((0, None), (M, init[0, 0]))):
+        got = vmap(lambda m, r: torchrot.fit_rotation(m, r), in_dims=in_dims)(*args)
+        m_i, r_i = ([a[i] if d is not None else a for i in range(3)] for a, d in zip(args, in_dims))
+        expected = torch.stack([torchrot.fit_rotation(m, r) for m, r in zip(m_i, r_i)])
+        assert torch.equal(got, expected)
+
+
+def test_compile_fullgraph_backward():
+    torch._dynamo.reset()
+    M = make_matrices("gaussian", 16, seed=1, dtype=torch.float32)
+
+    def loss(m, eps):
+        return (torchrot.fit_rotation(m, gradient_eps=eps) * m).sum()
+
+    compiled = torch.compile(loss, fullgraph=True)
+    for eps in (1e-6, 0.3):
+        Mc = M.clone().requires_grad_()
+        compiled(Mc, eps).backward()
+        Me = M.clone().requires_grad_()
+        loss(Me, eps).backward()
+        torch.testing.assert_close(Mc.grad, Me.grad)
+
+
+def test_autocast_runs_in_float32():
+    M = make_matrices("gaussian", 8, seed=2, dtype=torch.float32).requires_grad_()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        x = torch.nn.functional.linear(M.view(8, 9), torch.eye(9)).view(8, 3, 3)  # bf16 under autocast
+        assert x.dtype == torch.bfloat16
+        R = torchrot.fit_rotation(x)
+        R_op = op.fit_rotation(x.detach())
+    assert R.dtype == torch.float32 and R_op.dtype == torch.float32
+    R.sum().backward()
+    assert M.grad.dtype == torch.float32 and torch.isfinite(M.grad).all()
+
+
+def test_opcheck_backward_and_autograd_registration():
+    G, R, M = _backward_case(6, torch.float64)
+    torch.library.opcheck(op.fit_rotation_backward.default, (G, R, M, 1e-6))
+    torch.library.opcheck(op.fit_rotation.default, (M.clone().requires_grad_(), None, None, "conservative", 1e-6))
+
+
+def test_op_level_autograd_uses_gradient_eps():
+    M = torch.diag(torch.tensor([2.0, 1.0, -1.0], dtype=torch.float64)).requires_grad_()
+    G = torch.ones(3, 3, dtype=torch.float64)
+    for eps in (1e-3, 1e-1):
+        (g_op,) = torch.autograd.grad(op.fit_rotation(M, None, None, "conservative", eps), M, G)
+        (g_api,) = torch.autograd.grad(torchrot.fit_rotation(M, gradient_eps=eps), M, G)
+        torch.testing.assert_close(g_op, g_api, rtol=0, atol=0)
+
+
+# ---------------------------------------------------------------------------
+# Errors
+# ---------------------------------------------------------------------------
+
+
+def test_out_with_requires_grad_raises():
+    M = make_matrices("rot60", 2, seed=1).requires_grad_()
+    with pytest.raises(RuntimeError, match="out= does not support automatic differentiation"):
+        torchrot.fit_rotation(M, out=torch.empty(2, 3, 3, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("bad", [-1e-3, float("nan"), float("inf")])
+def test_bad_gradient_eps(bad):
+    M = make_matrices("rot60", 2, seed=1)
+    with pytest.raises((ValueError, RuntimeError), match="gradient_eps must be a finite number >= 0"):
+        torchrot.fit_rotation(M, gradient_eps=bad)
+    with pytest.raises(RuntimeError, match="gradient_eps must be a finite number >= 0"):
+        op.fit_rotation_backward(M, M, M, bad)
+    with pytest.raises(TypeError, match="gradient_eps must be a float"):
+        torchrot.fit_rotation(M, gradient_eps="small")
+
+
+def test_backward_op_argument_errors():
+    G, R, M = _backward_case(4, torch.float64)
+    with pytest.raises(RuntimeError, match="grad must have R's shape"):
+        op.fit_rotation_backward(G[:2], R, M, 1e-6)
+    with pytest.raises(RuntimeError, match="M of shape .* must broadcast to R's shape"):
+        op.fit_rotation_backward(G, R, M[:3], 1e-6)
+    with pytest.raises(RuntimeError, match="grad must have R's dtype"):
+        op.fit_rotation_backward(G.float(), R, M, 1e-6)
+    with pytest.raises(RuntimeError, match=r"R must have shape \(\.\.\., 3, 3\)"):
+        op.fit_rotation_backward(G, R.view(4, 9), M, 1e-6)
+    with pytest.raises(RuntimeError, match="R must be float32, float64"):
+        op.fit_rotation_backward(G.long(), R.long(), M.long(), 1e-6)
