@@ -46,6 +46,21 @@ def _gradient_for(M: torch.Tensor, grad_M: torch.Tensor) -> torch.Tensor:
     return grad_M if grad_M.shape == M.shape else grad_M.sum_to_size(M.shape)
 
 
+def _setup_context(ctx, inputs, output):
+    """Saves R and M (and the damping) of fit_rotation(M, init, max_iter, variant, gradient_eps)."""
+    ctx.save_for_backward(output, inputs[0])
+    ctx.gradient_eps = inputs[4] if len(inputs) > 4 else GRADIENT_EPS
+
+
+def _backward(ctx, grad_R):
+    """dL/dM for the operator's five inputs (no gradient for init and the options)."""
+    R, M = ctx.saved_tensors
+    grad_M = None
+    if ctx.needs_input_grad[0]:
+        grad_M = _gradient_for(M, rotation_tangent(grad_R, R, M, ctx.gradient_eps))
+    return grad_M, None, None, None, None
+
+
 class FitRotationFunction(torch.autograd.Function):
     """R = fit_rotation(M, init, max_iter, variant) with its derivatives in M.
 
@@ -61,18 +76,10 @@ class FitRotationFunction(torch.autograd.Function):
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        M, _, _, _, gradient_eps = inputs
-        ctx.save_for_backward(output, M)
-        ctx.save_for_forward(output, M)
-        ctx.gradient_eps = gradient_eps
+        _setup_context(ctx, inputs, output)
+        ctx.save_for_forward(output, inputs[0])
 
-    @staticmethod
-    def backward(ctx, grad_R):
-        R, M = ctx.saved_tensors
-        grad_M = None
-        if ctx.needs_input_grad[0]:
-            grad_M = _gradient_for(M, rotation_tangent(grad_R, R, M, ctx.gradient_eps))
-        return grad_M, None, None, None, None
+    backward = staticmethod(_backward)
 
     @staticmethod
     def jvp(ctx, dM, _dinit, _max_iter, _variant, _gradient_eps):
@@ -84,21 +91,7 @@ class FitRotationFunction(torch.autograd.Function):
 
 # ---- autograd of the operator itself (torch.ops.torchrot.fit_rotation) ----
 
-
-def _op_setup_context(ctx, inputs, output):
-    ctx.save_for_backward(output, inputs[0])
-    ctx.gradient_eps = inputs[4] if len(inputs) > 4 else GRADIENT_EPS
-
-
-def _op_backward(ctx, grad_R):
-    R, M = ctx.saved_tensors
-    grad_M = None
-    if ctx.needs_input_grad[0]:
-        grad_M = _gradient_for(M, rotation_tangent(grad_R, R, M, ctx.gradient_eps))
-    return grad_M, None, None, None, None
-
-
-torch.library.register_autograd("torchrot::fit_rotation", _op_backward, setup_context=_op_setup_context)
+torch.library.register_autograd("torchrot::fit_rotation", _backward, setup_context=_setup_context)
 
 
 # ---- vmap rules: every operator takes any batch shape, so a vmapped

@@ -37,15 +37,20 @@ def check_options(max_iter, variant) -> None:
         )
 
 
+def check_device_dtype(t: torch.Tensor, name: str, ref: torch.Tensor, ref_name: str, op: str = OP_NAME) -> None:
+    """t must be on ref's device and have ref's dtype."""
+    if t.device != ref.device:
+        raise ValueError(f"{op}: {name} must be on {ref_name}'s device ({ref.device}), got {t.device}")
+    if t.dtype != ref.dtype:
+        raise TypeError(f"{op}: {name} must have {ref_name}'s dtype ({ref.dtype}), got {t.dtype}")
+
+
 def check_init(M: torch.Tensor, init: torch.Tensor | None) -> None:
     check_matrix_arg(M, "M")
     if init is None:
         return
     check_matrix_arg(init, "init")
-    if init.device != M.device:
-        raise ValueError(f"{OP_NAME}: init must be on M's device ({M.device}), got {init.device}")
-    if init.dtype != M.dtype:
-        raise TypeError(f"{OP_NAME}: init must have M's dtype ({M.dtype}), got {init.dtype}")
+    check_device_dtype(init, "init", M, "M")
     batch, init_batch = M.shape[:-2], init.shape[:-2]
     try:
         ok = len(init_batch) <= len(batch) and torch.broadcast_shapes(init_batch, batch) == batch
@@ -60,10 +65,7 @@ def check_init(M: torch.Tensor, init: torch.Tensor | None) -> None:
 def check_out(M: torch.Tensor, out: torch.Tensor) -> None:
     if not isinstance(out, torch.Tensor):
         raise TypeError(f"{OP_NAME}: out must be a torch.Tensor, got {type(out).__name__}")
-    if out.device != M.device:
-        raise ValueError(f"{OP_NAME}: out must be on M's device ({M.device}), got {out.device}")
-    if out.dtype != M.dtype:
-        raise TypeError(f"{OP_NAME}: out must have M's dtype ({M.dtype}), got {out.dtype}")
+    check_device_dtype(out, "out", M, "M")
     if out.shape != M.shape:
         raise ValueError(f"{OP_NAME}: out must have M's shape {list(M.shape)}, got {list(out.shape)}")
 
@@ -86,10 +88,7 @@ def check_backward(grad: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradien
     if R.dtype not in SUPPORTED_DTYPES:
         raise TypeError(f"{BACKWARD_NAME}: R must be float32, float64, float16 or bfloat16, got {R.dtype}")
     for name, t in (("grad", grad), ("M", M)):
-        if t.device != R.device:
-            raise ValueError(f"{BACKWARD_NAME}: {name} must be on R's device ({R.device}), got {t.device}")
-        if t.dtype != R.dtype:
-            raise TypeError(f"{BACKWARD_NAME}: {name} must have R's dtype ({R.dtype}), got {t.dtype}")
+        check_device_dtype(t, name, R, "R", BACKWARD_NAME)
     if grad.shape != R.shape:
         raise ValueError(f"{BACKWARD_NAME}: grad must have R's shape {list(R.shape)}, got {list(grad.shape)}")
     try:
