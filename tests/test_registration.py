@@ -344,3 +344,21 @@ def test_gradients_match_svd_reference(scale):
     for a, b, name in zip(ours, reference, ("x", "y", "weights")):
         assert torch.isfinite(a).all()
         assert_close(a, b, 1e-9 * max(1.0, b.abs().max().item()), f"d/d{name}")
+
+
+def test_torch_func_vmap_and_grad():
+    """vmap over problems equals the batched call; func.grad equals autograd
+    (the value checks are skipped inside the transforms)."""
+    require_fit_rotation_autograd()
+    x, y, _ = make_problem((4,), n=10, seed=23, noise=0.3)
+    w = torch.rand(4, 10, generator=torch.Generator().manual_seed(24), dtype=torch.float64) + 0.1
+
+    def fn(x, y, w):
+        return tuple(torchrot.rigid_registration(x, y, w, scale=True))
+
+    for a, b in zip(torch.func.vmap(fn)(x, y, w), fn(x, y, w)):
+        assert_close(a, b, 1e-13, "vmap")
+    grad = torch.func.grad(lambda x: torchrot.rigid_registration(x, y[0], w[0], scale=True).t.sum())(x[0])
+    leaf = x[0].clone().requires_grad_()
+    torchrot.rigid_registration(leaf, y[0], w[0], scale=True).t.sum().backward()
+    assert_close(grad, leaf.grad, 1e-13, "func.grad")

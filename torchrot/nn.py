@@ -11,14 +11,11 @@ plain picklable Python objects, and work inside DistributedDataParallel.
 """
 from __future__ import annotations
 
-import inspect
-import math
-
 import torch
 from torch import nn
 
 import torchrot
-from torchrot._checks import VARIANTS
+from torchrot._checks import VARIANTS, check_gradient_eps
 from torchrot.registration import RigidTransform, rigid_registration
 
 __all__ = ["RotationFit", "RigidRegistration"]
@@ -51,7 +48,7 @@ class RotationFit(nn.Module):
             raise ValueError(f"RotationFit: variant must be one of {', '.join(map(repr, VARIANTS))}, "
                              f"got {variant!r}")
         if gradient_eps is not None:
-            _check_gradient_eps(gradient_eps)
+            check_gradient_eps(gradient_eps, name="RotationFit")
         self.max_iter = max_iter
         self.variant = variant
         self.gradient_eps = gradient_eps
@@ -109,12 +106,3 @@ def as_matrices(M: torch.Tensor) -> torch.Tensor:
         return M
     raise ValueError(f"RotationFit: M must have shape (..., 3, 3) or (..., 9), got {list(M.shape)}")
 
-
-def _check_gradient_eps(gradient_eps) -> None:
-    if isinstance(gradient_eps, bool) or not isinstance(gradient_eps, (int, float)):
-        raise TypeError(f"RotationFit: gradient_eps must be None or a non-negative float, got {gradient_eps!r}")
-    if not math.isfinite(gradient_eps) or gradient_eps < 0:
-        raise ValueError(f"RotationFit: gradient_eps must be None or a finite float >= 0, got {gradient_eps}")
-    if "gradient_eps" not in inspect.signature(torchrot.fit_rotation).parameters:
-        raise TypeError("RotationFit: gradient_eps needs a torchrot.fit_rotation that accepts it "
-                        "(this version has no gradient_eps keyword)")
