@@ -78,9 +78,13 @@ void check_out(const at::Tensor& M, const at::Tensor& out) {
               ": out must not have overlapping elements (e.g. an expanded tensor)");
 }
 
+// Largest damping accepted: beyond it the derivative is ~0 anyway, and the
+// kernel's eps^4 terms would overflow float (NaN gradients from 1e10 on).
+constexpr double kMaxGradientEps = 1e3;
+
 void check_gradient_eps(double gradient_eps, const char* op_name) {
-  TORCH_CHECK(std::isfinite(gradient_eps) && gradient_eps >= 0, op_name,
-              ": gradient_eps must be a finite number >= 0, got ", gradient_eps);
+  TORCH_CHECK(std::isfinite(gradient_eps) && gradient_eps >= 0 && gradient_eps <= kMaxGradientEps, op_name,
+              ": gradient_eps must be a finite number >= 0 and <= ", kMaxGradientEps, ", got ", gradient_eps);
 }
 
 // Orthonormality tolerance of warm starts by the caller's dtype: reduced

@@ -11,7 +11,12 @@ Properties, for float32 and float64, at every instruction set the CPU has:
 * every kernel (default, avx2, avx512) gives bit-identical R, iterations and
   status to the scalar kernel (which fits one matrix at a time);
 * scaling M by a power of two (entries staying normal) changes nothing, bit
-  for bit: the kernel normalises exactly.
+  for bit: the kernel normalises exactly;
+* derivatives (autograd backward through ``fit_rotation`` and the forward-mode
+  tangent, both ``torch.ops.torchrot.fit_rotation_backward``): finite for
+  every matrix whose M, warm start and incoming gradient are finite, for any
+  ``gradient_eps`` in GRADIENT_EPS_VALUES (0 = undamped included); NaN/Inf
+  only where an input had NaN/Inf; bit-identical at every kernel.
 
 Inputs mix hypothesis's own "nasty" floats (signed zeros, subnormals, the
 largest finite values), matrices scaled by 2^e over the whole exponent range,
@@ -78,7 +83,7 @@ def _settings(default_examples: int, long_examples: int) -> settings:
 # Counting what was checked (printed by the long profile)
 # ---------------------------------------------------------------------------
 
-CHECKED = {"matrices": 0, "non_finite": 0, "kernel_calls": 0}
+CHECKED = {"matrices": 0, "non_finite": 0, "derivative_matrices": 0, "kernel_calls": 0}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -90,7 +95,8 @@ def _report_counts(request):
         with capture.global_and_fixture_disabled():
             reporter.write_line(
                 f"\ntest_fuzz: {CHECKED['matrices']:,} matrices checked ({CHECKED['non_finite']:,} with NaN/Inf), "
-                f"each at {len(SUPPORTED_ISAS)} kernels {SUPPORTED_ISAS}; {CHECKED['kernel_calls']:,} kernel calls"
+                f"each at {len(SUPPORTED_ISAS)} kernels {SUPPORTED_ISAS}; derivatives of "
+                f"{CHECKED['derivative_matrices']:,}; {CHECKED['kernel_calls']:,} kernel calls"
             )
 
 
@@ -212,6 +218,52 @@ def check_fit(M: torch.Tensor, init: torch.Tensor | None, max_iter, variant, wha
                 i = int(bad.nonzero()[0])
                 pytest.fail(f"{context}: {isa} {name} differs from scalar at matrix {i}: M={M[i].tolist()}, "
                             f"{isa} {a[i].tolist()} vs scalar {b[i].tolist()}")
+
+
+#: damping values the derivative is fuzzed with (0: undamped; the default 1e-6)
+GRADIENT_EPS_VALUES = (0.0, 1e-12, 1e-7, 1e-6, 1e-3, 1.0, 1e3)  # 1e3: the largest accepted
+
+
+def _rows_finite(t: torch.Tensor, n: int) -> torch.Tensor:
+    return torch.isfinite(t).reshape(n, 9).all(1)
+
+
+def check_derivatives(M, init, max_iter, variant, G, gradient_eps, what: str = "") -> None:
+    """Backward (dL/dM for dL/dR = G) and forward-mode tangent (dR for
+    dM = G) at every kernel: finite where M, init and G are finite, and
+    bit-identical to the scalar kernel (NaN vs NaN where an input was not)."""
+    n = M.shape[0]
+    context = (f"{what} {M.dtype} n={n} max_iter={max_iter} variant={variant} warm={init is not None} "
+               f"gradient_eps={gradient_eps}")
+    finite_in = _rows_finite(M, n) & _rows_finite(G, n)
+    if init is not None:
+        finite_in &= _rows_finite(init.expand(M.shape), n)
+    results = {}
+    for isa in SUPPORTED_ISAS:
+        with _kernel(isa):
+            assert torch.ops.torchrot.cpu_kernel() == isa
+            M_leaf = M.clone().requires_grad_()
+            R = torchrot.fit_rotation(M_leaf, init, max_iter=max_iter, variant=variant, gradient_eps=gradient_eps)
+            assert R.grad_fn is not None
+            R.backward(G)
+            _, tangent = torch.func.jvp(
+                lambda X: torchrot.fit_rotation(X, init, max_iter=max_iter, variant=variant,
+                                                gradient_eps=gradient_eps), (M,), (G,))
+        results[isa] = (M_leaf.grad, tangent)
+        CHECKED["kernel_calls"] += 4
+    CHECKED["derivative_matrices"] += n
+    for name, value in zip(("backward", "tangent"), results["scalar"]):
+        finite_out = _rows_finite(value, n)
+        bad = (finite_in & ~finite_out).nonzero().flatten().tolist()
+        assert not bad, (f"{context}: non-finite {name} for finite input at {bad[:5]}: M={M[bad[0]].tolist()} "
+                         f"G={G[bad[0]].tolist()} -> {value[bad[0]].tolist()}")
+    for isa, got in results.items():
+        for name, a, b in zip(("backward", "tangent"), got, results["scalar"]):
+            same = (_bits(a) == _bits(b)).reshape(n, 9).all(1) | (torch.isnan(a) & torch.isnan(b)).reshape(n, 9).all(1)
+            if not bool(same.all()):
+                i = int((~same).nonzero()[0])
+                pytest.fail(f"{context}: {isa} {name} differs from scalar at matrix {i}: M={M[i].tolist()} "
+                            f"G={G[i].tolist()}: {a[i].tolist()} vs {b[i].tolist()}")
 
 
 # ---------------------------------------------------------------------------
@@ -355,6 +407,19 @@ def problems(draw, dtype, max_size=40):
     return M, init, max_iter, variant
 
 
+@st.composite
+def incoming_gradients(draw, n: int, dtype):
+    """``(n, 3, 3)`` dL/dR (or dM): O(1) values, arbitrary floats (huge,
+    subnormal, +-0) or, rarely, NaN/Inf entries."""
+    kind = draw(st.sampled_from(["unit", "unit", "arbitrary", "with_non_finite"]))
+    if kind == "unit":
+        seed = draw(st.integers(0, 2**32 - 1))
+        return torch.randn(n, 3, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64).to(dtype)
+    entries = draw(st.lists(_floats(dtype, allow_nan=kind == "with_non_finite",
+                                    allow_infinity=kind == "with_non_finite"), min_size=9 * n, max_size=9 * n))
+    return torch.tensor(entries, dtype=torch.float64).view(n, 3, 3).to(dtype)
+
+
 # ---------------------------------------------------------------------------
 # Tests
 # ---------------------------------------------------------------------------
@@ -486,16 +551,37 @@ BATCH_SIZE = 65536 if LONG else 2048
 @pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
 def test_batched_recipes(dtype):
     """Drawn recipes (seed, special-value and NaN/Inf rates, exponent spread,
-    cold/warm, mode, variant) expanded to batches of every distribution."""
+    cold/warm, mode, variant, damping) expanded to batches of every
+    distribution; the fit and its derivatives (incoming gradients from the
+    same kind of recipe)."""
     lo, hi = _exponent_range(dtype)
 
     @_settings(default_examples=6, long_examples=60)
     @given(seed=st.integers(0, 2**32 - 1), p_special=st.sampled_from([0.0, 0.002, 0.05, 0.3]),
            p_non_finite=st.sampled_from([0.0, 0.0005, 0.01]), spread=st.sampled_from([0, 8, 60, hi - lo]),
-           warm=st.booleans(), max_iter=st.sampled_from([None, None, 1, 3]), variant=st.sampled_from(VARIANTS))
-    def run(seed, p_special, p_non_finite, spread, warm, max_iter, variant):
+           warm=st.booleans(), max_iter=st.sampled_from([None, None, 1, 3]), variant=st.sampled_from(VARIANTS),
+           gradient_eps=st.sampled_from(GRADIENT_EPS_VALUES))
+    def run(seed, p_special, p_non_finite, spread, warm, max_iter, variant, gradient_eps):
         M, init = batched_problem(seed, BATCH_SIZE, dtype, p_special, p_non_finite, spread, warm)
         check_fit(M, init, max_iter, variant, what=f"batched seed={seed}")
+        G, _ = batched_problem(seed + 1, BATCH_SIZE, dtype, p_special, p_non_finite, spread, False)
+        check_derivatives(M, init, max_iter, variant, G, gradient_eps, what=f"batched seed={seed}")
+
+    run()
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+def test_derivatives_of_arbitrary_matrices(dtype):
+    """Backward and forward-mode derivatives of batches of 0-24 drawn
+    matrices (every kind, NaN/Inf included), with drawn incoming gradients
+    and damping."""
+
+    @_settings(default_examples=40, long_examples=3000)
+    @given(problems(dtype, max_size=24), st.data(), st.sampled_from(GRADIENT_EPS_VALUES))
+    def run(problem, data, gradient_eps):
+        M, init, max_iter, variant = problem
+        G = data.draw(incoming_gradients(M.shape[0], dtype), label="G")
+        check_derivatives(M, init, max_iter, variant, G, gradient_eps, what="arbitrary")
 
     run()
 

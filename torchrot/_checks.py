@@ -100,8 +100,15 @@ def check_backward(grad: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradien
     check_gradient_eps(gradient_eps, BACKWARD_NAME)
 
 
+# Largest damping accepted (csrc/ops.cpp kMaxGradientEps): beyond it the
+# derivative is ~0 anyway, and the kernel's eps^4 terms would overflow float.
+MAX_GRADIENT_EPS = 1e3
+
+
 def check_gradient_eps(gradient_eps, name: str = OP_NAME) -> None:
     if isinstance(gradient_eps, bool) or not isinstance(gradient_eps, (int, float)):
         raise TypeError(f"{name}: gradient_eps must be a float >= 0, got {gradient_eps!r}")
-    if not (0 <= gradient_eps < float("inf")):
-        raise ValueError(f"{name}: gradient_eps must be a finite number >= 0, got {gradient_eps!r}")
+    if not (0 <= gradient_eps <= MAX_GRADIENT_EPS):
+        raise ValueError(
+            f"{name}: gradient_eps must be a finite number >= 0 and <= {MAX_GRADIENT_EPS:g}, got {gradient_eps!r}"
+        )

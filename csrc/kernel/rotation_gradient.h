@@ -92,8 +92,16 @@ inline Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const 
   const V k01 = -(S(0, 1) + S(1, 0)) * half_inv;
   const V k02 = -(S(0, 2) + S(2, 0)) * half_inv;
   const V k12 = -(S(1, 2) + S(2, 1)) * half_inv;
-  // h = K g and Q = K^2 + eps^2 I (symmetric).
-  const Vec3<V> g = skew_axial(R, X);
+  // h = K g and Q = K^2 + eps^2 I (symmetric). An X with entries above
+  // 2^(max_exponent / 2) is scaled down by that power of two (exact) so that
+  // g, h and adj(Q) h cannot overflow; the result is scaled back, saturating.
+  V x_max(0);
+  for (int k = 0; k < 9; ++k) x_max = L::max(x_max, L::abs(X.a[k]));
+  constexpr int kHalfRange = std::numeric_limits<T>::max_exponent / 2;
+  const auto x_huge = L::gt(x_max, V(std::ldexp(T(1), kHalfRange)));
+  Mat3<V> Xs;
+  for (int k = 0; k < 9; ++k) Xs.a[k] = X.a[k] * L::select(x_huge, V(std::ldexp(T(1), -kHalfRange)), V(1));
+  const Vec3<V> g = skew_axial(R, Xs);
   const Vec3<V> h{k00 * g.x + k01 * g.y + k02 * g.z, k01 * g.x + k11 * g.y + k12 * g.z,
                   k02 * g.x + k12 * g.y + k22 * g.z};
   const V eps2(damping * damping);
@@ -105,22 +113,25 @@ inline Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const 
   const V q12 = k01 * k02 + k11 * k12 + k12 * k22;
   // u = adj(Q) h / det Q. Q is positive definite for eps > 0; with eps = 0
   // and A singular in floating point, the undetermined tangent is dropped.
+  // So is a det Q below the smallest normal number (1 / det would overflow:
+  // NaN from 0 * inf for M = 0 with eps^6 < T_min, e.g. eps = 1e-7 in float),
+  // and u is clamped to +-T_max, so that R [u]x cannot form inf - inf.
   const V a00 = q11 * q22 - q12 * q12, a01 = q02 * q12 - q01 * q22, a02 = q01 * q12 - q02 * q11;
   const V a11 = q00 * q22 - q02 * q02, a12 = q01 * q02 - q00 * q12, a22 = q00 * q11 - q01 * q01;
   const V det = q00 * a00 + q01 * a01 + q02 * a02;
-  const V inv_det = L::select(L::gt(det, V(0)), V(1) / det, V(0));
-  const Vec3<V> u{(a00 * h.x + a01 * h.y + a02 * h.z) * inv_det, (a01 * h.x + a11 * h.y + a12 * h.z) * inv_det,
-                  (a02 * h.x + a12 * h.y + a22 * h.z) * inv_det};
+  const V inv_det = L::select(L::gt(det, V(std::numeric_limits<T>::min())), V(1) / det, V(0));
+  const V huge(std::numeric_limits<T>::max());
+  auto saturate = [&huge](V x) { return L::min(L::max(x, V(0) - huge), huge); };
+  const Vec3<V> u{saturate((a00 * h.x + a01 * h.y + a02 * h.z) * inv_det),
+                  saturate((a01 * h.x + a11 * h.y + a12 * h.z) * inv_det),
+                  saturate((a02 * h.x + a12 * h.y + a22 * h.z) * inv_det)};
   // Undo the scaling by 1 / |M|_F = inv_frob / max |M_ij|. Below |M|_F ~
   // 1 / T_max (subnormal M) the exact derivative exceeds T's range: it
   // saturates at +-T_max (never inf, never 0 * inf = NaN).
-  const V huge(std::numeric_limits<T>::max());
   const V scale = L::min(lift * inv_max, huge) * inv_frob;
+  const V x_up = L::select(x_huge, V(std::ldexp(T(1), kHalfRange)), V(1));
   Mat3<V> tangent = times_cross(R, u);
-  for (int k = 0; k < 9; ++k) {
-    const V x = tangent.a[k] * scale;
-    tangent.a[k] = L::min(L::max(x, V(0) - huge), huge);
-  }
+  for (int k = 0; k < 9; ++k) tangent.a[k] = saturate(saturate(tangent.a[k] * scale) * x_up);
   return tangent;
 }
 
