@@ -279,6 +279,39 @@ def time_rotation_layers(config: Config, data: dict[str, torch.Tensor], log=prin
     return rows
 
 
+def gradient_accuracy(data: dict[str, torch.Tensor], max_matrices: int = 10_000) -> list[dict]:
+    """float32 dL/dM of each layer against float64 SVD autograd (L = sum G * R,
+    G Gaussian), per data set: per-matrix relative Frobenius error
+    ||g - g64|| / ||g64|| (matrices where the float64 gradient is finite), and
+    how close M's singular values are (min_i<j |sigma_i - sigma_j| / sigma_1):
+    SVD's backward divides by sigma_i^2 - sigma_j^2."""
+    rows = []
+    layers = {"torchrot.nn.RotationFit": torchrot.nn.RotationFit(),
+              "SVD (torch.linalg.svd autograd)": torchrot.rotation_svd}
+    for data_name, M in data.items():
+        M = M[:max_matrices].detach()
+        G = torch.randn(M.shape, generator=torch.Generator().manual_seed(2))
+        reference = _gradient(torchrot.rotation_svd, M.double(), G.double())
+        usable = torch.isfinite(reference).all(-1).all(-1)
+        sigma = torch.linalg.svdvals(M.double())
+        gaps = torch.stack([sigma[:, 0] - sigma[:, 1], sigma[:, 1] - sigma[:, 2]], -1).amin(-1) / sigma[:, 0]
+        for name, layer in layers.items():
+            g = _gradient(layer, M, G).double()
+            error = ((g - reference).norm(dim=(-2, -1)) / reference.norm(dim=(-2, -1)))[usable]
+            rows.append({"data": data_name, "layer": name, "matrices": int(usable.sum()),
+                         "median_relative_error": error.median().item(),
+                         "p99_relative_error": error.quantile(0.99).item(),
+                         "max_relative_error": error.max().item(),
+                         "nonfinite_share": 1 - torch.isfinite(g).all(-1).all(-1).double().mean().item(),
+                         "median_relative_sigma_gap": gaps.median().item()})
+    return rows
+
+
+def _gradient(layer, M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    M = M.clone().requires_grad_()
+    return torch.autograd.grad((layer(M) * G).sum(), M)[0]
+
+
 def network_outputs(model: PointNetRegressor, points: torch.Tensor) -> torch.Tensor:
     """The raw 9-D outputs M (before the rotation layer) as ``(B, 3, 3)``."""
     with torch.no_grad():
@@ -341,6 +374,22 @@ def format_layer_table(config: Config, layer_rows: list[dict]) -> str:
             call = f"{r['forward_backward_us_at_train_batch']:.1f}"
         lines.append(f"| {r['data']} | {r['method']} | {backward_cells[0]} | {backward_cells[1]} | "
                      f"{r['forward_ns']:.1f} | {r['forward_vs_copy']:.1f} | {call} |")
+    return "\n".join(lines)
+
+
+def format_accuracy_table(rows: list[dict]) -> str:
+    lines = [
+        "Gradient accuracy in float32: dL/dM (L = sum G * R, G Gaussian) against autograd through float64 SVD, "
+        "per matrix ||g - g64||_F / ||g64||_F; sigma gap = median of min |sigma_i - sigma_j| / sigma_1 "
+        "(SVD's backward divides by sigma_i^2 - sigma_j^2).",
+        "",
+        "| data | layer | matrices | median rel. error | 99th percentile | max | non-finite | sigma gap |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(f"| {r['data']} | {r['layer']} | {r['matrices']} | {r['median_relative_error']:.1e} | "
+                     f"{r['p99_relative_error']:.1e} | {r['max_relative_error']:.1e} | {r['nonfinite_share']:.2%} | "
+                     f"{r['median_relative_sigma_gap']:.3f} |")
     return "\n".join(lines)
 
 
@@ -421,14 +470,14 @@ def plot(runs: list[dict], summary: dict, config: Config, path: str) -> None:
     plt.close(fig)
 
 
-def write_results(config: Config, runs: list[dict], summary: dict, layer_rows: list[dict], tables: str,
-                  folder: str) -> list[str]:
+def write_results(config: Config, runs: list[dict], summary: dict, layer_rows: list[dict],
+                  accuracy_rows: list[dict], tables: str, folder: str) -> list[str]:
     os.makedirs(folder, exist_ok=True)
     stem = os.path.join(folder, "train_rotation_regression")
     paths = [stem + ".json", stem + ".md", stem + ".png"]
     with open(paths[0], "w") as f:
         json.dump({"machine": machine_info(), "config": asdict(config), "summary": summary,
-                   "layer_timings": layer_rows, "runs": runs}, f)
+                   "layer_timings": layer_rows, "gradient_accuracy": accuracy_rows, "runs": runs}, f)
     with open(paths[1], "w") as f:
         f.write(f"# Training benchmark: rotation regression\n\nMachine: {machine_info()}\n\n{tables}\n")
     try:
@@ -489,13 +538,14 @@ def main(argv=None) -> int:
                    **timing_data}
     print("rotation layer alone:")
     layer_rows = time_rotation_layers(config, timing_data)
+    accuracy_rows = gradient_accuracy(timing_data)
     if skip_training:
-        print(format_layer_table(config, layer_rows))
+        print(format_layer_table(config, layer_rows) + "\n\n" + format_accuracy_table(accuracy_rows))
         return 0
     summary = summarize(runs)
-    tables = format_tables(config, summary, layer_rows)
+    tables = format_tables(config, summary, layer_rows) + "\n\n" + format_accuracy_table(accuracy_rows)
     print("\n" + tables)
-    for path in write_results(config, runs, summary, layer_rows, tables, output):
+    for path in write_results(config, runs, summary, layer_rows, accuracy_rows, tables, output):
         print(f"wrote {path}")
     return 0
 

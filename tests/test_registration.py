@@ -196,6 +196,12 @@ def test_batch_dimensions_broadcast():
     assert_close(out.t, t, 1e-10, "t")
 
 
+def test_empty_batch():
+    x = torch.zeros(0, 10, 3, dtype=torch.float64)
+    out = torchrot.rigid_registration(x, x, torch.ones(0, 10, dtype=torch.float64), scale=True)
+    assert out.R.shape == (0, 3, 3) and out.t.shape == (0, 3) and out.s.shape == (0,)
+
+
 def test_non_contiguous_inputs_and_no_input_modification():
     x, y, _ = make_problem((4,), n=16, seed=12, noise=0.1)
     xt = x.transpose(-1, -2).contiguous().transpose(-1, -2)  # same values, other strides
