@@ -222,6 +222,9 @@ def test_half_precision_is_computed_in_float32(low):
     assert out.R.dtype == out.t.dtype == out.s.dtype == low
     ref = torchrot.rigid_registration(x.to(low).float(), y.to(low).float())
     assert torch.equal(out.R, ref.R.to(low))
+    # a half-precision warm start (a rotation only to its own precision) is accepted
+    warm = torchrot.rigid_registration(x.to(low), y.to(low), init=R.to(low))
+    assert_close(warm.R, ref.R, 1e-2, "R from a half-precision init")
 
 
 def test_autocast_keeps_float32():
@@ -248,8 +251,12 @@ def test_init_is_forwarded_as_warm_start(monkeypatch):
     warm = torchrot.rigid_registration(x, y, init=R)
     assert seen and seen[-1] is R
     assert_close(warm.R, cold.R, 1e-12, "R")
-    with pytest.raises((ValueError, RuntimeError), match="init"):
+    with pytest.raises(ValueError, match=r"init must have shape \(\.\.\., 3, 3\) broadcastable to the batch shape \[8\]"):
         torchrot.rigid_registration(x, y, init=torch.eye(3, dtype=torch.float64).expand(3, 3, 3))
+    with pytest.raises(TypeError, match="init must have x's dtype"):
+        torchrot.rigid_registration(x, y, init=R.float())
+    with pytest.raises(RuntimeError, match="init must hold rotations"):
+        torchrot.rigid_registration(x, y, init=2 * R)
 
 
 def test_compiles_fullgraph():

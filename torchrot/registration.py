@@ -68,8 +68,10 @@ def rigid_registration(
             squared); a zero weight drops its point. ``None``: all ones.
         scale: also fit a uniform scale s (Umeyama). ``False``: s = 1.
         init: optional ``(..., 3, 3)`` rotations broadcastable to the batch,
-            forwarded to :func:`torchrot.fit_rotation` as its warm start (e.g.
-            the previous frame's R). No gradient flows to init.
+            in the inputs' dtype, forwarded to :func:`torchrot.fit_rotation` as
+            its warm start (e.g. the previous frame's R). No gradient flows to
+            init. (A float16/bfloat16 init is projected onto the nearest float32
+            rotation first.)
 
     Returns:
         :class:`RigidTransform` ``(R, t, s)`` with R ``(..., 3, 3)``, t
@@ -81,17 +83,18 @@ def rigid_registration(
         in a problem's inputs gives NaN in that problem's outputs.
 
     Raises:
-        TypeError: x, y or weights not a tensor, not float32/float64/float16/
-            bfloat16, or of different dtypes; scale not a bool.
-        ValueError: shapes other than ``(..., N, 3)`` / ``(..., N)``, different
-            N, batch dimensions that do not broadcast, tensors on different
-            devices; negative weights; a problem with fewer than 3 points of
+        TypeError: x, y, weights or init not a tensor, not float32/float64/
+            float16/bfloat16, or of different dtypes; scale not a bool.
+        ValueError: shapes other than ``(..., N, 3)`` / ``(..., N)`` /
+            ``(..., 3, 3)``, different N, batch dimensions that do not
+            broadcast, tensors on different devices; negative weights; init
+            that is not a rotation (from fit_rotation); a problem with fewer than 3 points of
             nonzero weight (all-zero weights included); with ``scale=True``, a
             problem whose weighted points all coincide (s undefined). The value
             checks are skipped inside torch.compile and torch.func transforms,
             where they would need data-dependent control flow.
     """
-    _check_arguments(x, y, weights, scale)
+    _check_arguments(x, y, weights, scale, init)
     if _values_readable(x, y, weights):
         _check_point_counts(x, weights)
     dtype = x.dtype
@@ -99,8 +102,17 @@ def rigid_registration(
     # Autocast would run the covariance products in bf16; they need the input precision.
     with torch.autocast(x.device.type, enabled=False):
         R, t, s = _solve(x.to(compute), y.to(compute), None if weights is None else weights.to(compute),
-                         scale, init)
+                         scale, _init_in(init, compute))
     return RigidTransform(R.to(dtype), t.to(dtype), s.to(dtype))
+
+
+def _init_in(init, compute: torch.dtype):
+    """init in the compute dtype. A float16/bfloat16 init is only a rotation to
+    its own precision, so in float32 it is replaced by the nearest float32
+    rotation (init carries no gradient)."""
+    if init is None or init.dtype == compute:
+        return init
+    return torchrot.fit_rotation(init.detach().to(compute))
 
 
 def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -128,7 +140,7 @@ def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor
     return R, t, s
 
 
-def _check_arguments(x, y, weights, scale) -> None:
+def _check_arguments(x, y, weights, scale, init) -> None:
     for name, value in (("x", x), ("y", y)):
         if not isinstance(value, torch.Tensor):
             raise TypeError(f"{_NAME}: {name} must be a torch.Tensor, got {type(value).__name__}")
@@ -157,12 +169,31 @@ def _check_arguments(x, y, weights, scale) -> None:
             raise ValueError(f"{_NAME}: weights must be on x's device ({x.device}), got {weights.device}")
         batches["weights"] = weights.shape[:-1]
     try:
-        torch.broadcast_shapes(*batches.values())
+        batch = torch.broadcast_shapes(*batches.values())
     except RuntimeError:
         shapes = ", ".join(f"{name} {list(shape)}" for name, shape in batches.items())
         raise ValueError(f"{_NAME}: the batch dimensions must broadcast, got {shapes}") from None
     if not isinstance(scale, bool):
         raise TypeError(f"{_NAME}: scale must be a bool, got {scale!r}")
+    if init is not None:
+        _check_init(init, x, batch)
+
+
+def _check_init(init, x: torch.Tensor, batch: torch.Size) -> None:
+    if not isinstance(init, torch.Tensor):
+        raise TypeError(f"{_NAME}: init must be None or a torch.Tensor, got {type(init).__name__}")
+    if init.dtype != x.dtype:
+        raise TypeError(f"{_NAME}: init must have x's dtype ({x.dtype}), got {init.dtype}")
+    if init.device != x.device:
+        raise ValueError(f"{_NAME}: init must be on x's device ({x.device}), got {init.device}")
+    try:
+        fits = init.dim() >= 2 and init.shape[-2:] == (3, 3) and len(init.shape) - 2 <= len(batch) \
+            and torch.broadcast_shapes(init.shape[:-2], batch) == batch
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(f"{_NAME}: init must have shape (..., 3, 3) broadcastable to the batch shape "
+                         f"{list(batch)}, got {list(init.shape)}")
 
 
 def _values_readable(*tensors) -> bool:
