@@ -11,12 +11,15 @@ the tests use, as (M, init) pairs of a local-global solver (``make_warm_start``)
 Two parts:
   scaling: ns/matrix against N for the main methods (plotted log-log);
   methods: every method at one N, for each data set, dtype and thread count,
-           torchrot at each instruction set, mode and variant.
+           torchrot at each instruction set, mode and variant, and the
+           paper's comparison methods (``torchrot.methods``, group
+           "paper method"), each with its failures shown, not hidden.
 """
 from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import platform
 import statistics
@@ -28,6 +31,7 @@ import torch.utils.benchmark as tbench
 
 import torchrot
 from torchrot import baselines
+from torchrot import methods as paper
 from torchrot.reference import rotation_svd
 from torchrot.testing import make_warm_start
 
@@ -37,6 +41,12 @@ VARIANTS = ("newton", "conservative", "gershgorin")
 WARM_DATA = ("warm", "warm_cond1e5")
 ACCURACY_SAMPLE = 1_000_000  # accuracy is measured on the first matrices of each data set
 SLOW_MAX_N = 1_000_000  # SVD-based baselines are not run above this N
+PAPER = "paper method"
+FAILURE_THRESHOLD = 1e-3  # |R - R*|_F above this (or a non-finite result) counts as a failure
+# Mueller et al.'s converged mode takes hundreds of steps per matrix (~1e5 ns/matrix in
+# eager PyTorch, plus ~0.2 s per call of per-step overhead in its long tail): it is timed
+# on the first matrices of each data set only.
+MUELLER_CONVERGED_SAMPLE_N = 2_000
 
 
 @dataclass
@@ -45,12 +55,16 @@ class Method:
 
     name: str
     run: Callable[[Tensor, Tensor, Tensor], Tensor]
-    group: str  # "floor", "baseline" or "torchrot"
+    group: str  # "floor", "baseline", "torchrot" or "paper method"
     isa: str | None = None  # torchrot kernel to force (TORCHROT_CPU_CAPABILITY)
     warm_only: bool = False  # only meaningful where init is close (warm data)
     max_n: int | None = None
     float64_only: bool = False
     diagnostics: dict | None = None  # fit_rotation_info arguments: report iterations and fallbacks
+    # Timed and measured on the first sample_n matrices where N is larger (for methods so
+    # slow that ns/matrix no longer depends on N); the row reports the N actually used.
+    sample_n: int | None = None
+    iterations: Callable[[Tensor, Tensor], Tensor] | None = None  # (M, init) -> steps per matrix
 
 
 @dataclass
@@ -66,7 +80,8 @@ class Row:
     isa: str | None = None
     max_error: float | None = None  # max |R - R*|_F against float64 SVD
     median_error: float | None = None
-    share_above_1e3: float | None = None  # share of matrices with |R - R*|_F > 1e-3
+    share_above_1e3: float | None = None  # share of matrices with |R - R*|_F > 1e-3 (or non-finite)
+    failures: int | None = None  # number of matrices with |R - R*|_F > 1e-3 or a non-finite result
     max_shortfall: float | None = None  # max (tr(R*^T M) - tr(R^T M)) / |M|_F
     mean_iterations: float | None = None
     fallback_rate: float | None = None
@@ -117,9 +132,44 @@ def _torchrot_methods(isa: str | None, label: str, variants: tuple[str, ...]) ->
     return methods
 
 
+def paper_methods(sample_n: int | None = None) -> list[Method]:
+    """The comparison methods of the paper's Table 1 (``torchrot.methods``), batched
+    PyTorch, same convention. Fixed-step warm starts only run on warm data, as
+    torchrot's one-step rows; converged modes report their mean steps. ``sample_n``:
+    run them on the first sample_n matrices of each data set only (a moderate N keeps
+    the quick plan quick; they cost 0.5-5 us per matrix)."""
+    methods = [
+        Method("Horn 1987 (eigh of 4x4 K)", lambda M, init, out: paper.horn(M), PAPER, max_n=SLOW_MAX_N),
+        Method("Mueller 2016, 1 step from init", lambda M, init, out: paper.mueller(M, init, max_iter=1), PAPER,
+               warm_only=True, max_n=SLOW_MAX_N),
+        Method("Mueller 2016, 10 steps from init", lambda M, init, out: paper.mueller(M, init, max_iter=10),
+               PAPER, warm_only=True, max_n=SLOW_MAX_N),
+        Method(f"Mueller 2016, converged from init (cap {paper.MUELLER_CAP})",
+               lambda M, init, out: paper.mueller(M, init), PAPER, sample_n=MUELLER_CONVERGED_SAMPLE_N,
+               iterations=lambda M, init: paper.mueller(M, init, return_iterations=True)[1]),
+        Method("Higham 1986 polar, LU inverse", lambda M, init, out: paper.higham_polar(M), PAPER,
+               max_n=SLOW_MAX_N, iterations=lambda M, init: paper.higham_polar(M, return_iterations=True)[1]),
+        Method("Higham 1986 polar, cofactor inverse", lambda M, init, out: paper.higham_polar(M, inverse="cofactor"),
+               PAPER, max_n=SLOW_MAX_N,
+               iterations=lambda M, init: paper.higham_polar(M, inverse="cofactor", return_iterations=True)[1]),
+        Method(f"FA3R 2018, {paper.FA3R_PAPER_ITERATIONS} steps (authors')", lambda M, init, out: paper.fa3r(M),
+               PAPER, max_n=SLOW_MAX_N),
+        Method("FA3R 2018, converged", lambda M, init, out: paper.fa3r(M, max_iter=None), PAPER, max_n=SLOW_MAX_N,
+               iterations=lambda M, init: paper.fa3r(M, max_iter=None, return_iterations=True)[1]),
+        Method("Kugelstadt 2018, 1 Newton step from init", lambda M, init, out: paper.kugelstadt(M, init), PAPER,
+               warm_only=True, max_n=SLOW_MAX_N),
+    ]
+    if sample_n is not None:
+        for method in methods:
+            method.sample_n = sample_n if method.sample_n is None else min(sample_n, method.sample_n)
+    return methods
+
+
 def all_methods(isas: list[str] | None = None, variants: tuple[str, ...] = VARIANTS,
-                first_touch: bool = True) -> list[Method]:
-    """The floor, the baselines that are installed, and torchrot per kernel."""
+                first_touch: bool = True, comparison: bool = True, comparison_n: int | None = None) -> list[Method]:
+    """The floor, the baselines that are installed, torchrot per kernel and (with
+    ``comparison``) the paper's comparison methods, on at most ``comparison_n``
+    matrices per data set."""
     methods = [
         Method("copy_ (memory floor)", lambda M, init, out: out.copy_(M), "floor"),
         Method("torch.linalg.svd", lambda M, init, out: rotation_svd(M), "baseline", max_n=SLOW_MAX_N),
@@ -143,6 +193,8 @@ def all_methods(isas: list[str] | None = None, variants: tuple[str, ...] = VARIA
         methods.append(Method("torchrot 1-step warm, conservative, new output",
                               lambda M, init, out: torchrot.fit_rotation(M, init, max_iter=1), "torchrot",
                               warm_only=True))
+    if comparison:
+        methods += paper_methods(comparison_n)
     return methods
 
 
@@ -154,13 +206,16 @@ def _median_seconds(fn: Callable[[], object], repeats: int, min_run_time: float,
 
 
 def _accuracy(R: Tensor, M64: Tensor, R_star: Tensor) -> dict:
-    dist = (R.double() - R_star).norm(dim=(-2, -1))
+    # A non-finite result counts as infinitely wrong (a NaN would drop out of max and share).
+    dist = torch.nan_to_num((R.double() - R_star).norm(dim=(-2, -1)), nan=math.inf)
     norm = M64.norm(dim=(-2, -1)).clamp_min(torch.finfo(torch.float64).tiny)
-    shortfall = ((R_star - R.double()) * M64).sum((-2, -1)) / norm
+    shortfall = torch.nan_to_num(((R_star - R.double()) * M64).sum((-2, -1)) / norm, nan=math.inf)
+    failed = dist > FAILURE_THRESHOLD
     return {
         "max_error": dist.max().item(),
         "median_error": dist.median().item(),
-        "share_above_1e3": (dist > 1e-3).double().mean().item(),
+        "share_above_1e3": failed.double().mean().item(),
+        "failures": int(failed.sum()),
         "max_shortfall": shortfall.max().item(),
     }
 
@@ -188,22 +243,30 @@ def run_case(part: str, data: str, n: int, dtype: torch.dtype, threads: int, met
         for method in methods:
             if not _applicable(method, data, n, dtype):
                 continue
+            # slow methods run on the first sample_n matrices (their ns/matrix is flat in N)
+            used = n if method.sample_n is None else min(n, method.sample_n)
+            M_used, init_used, out_used = M[:used], init[:used], out[:used]
+            k_used = min(k, used)
             with forced_isa(method.isa):
-                runs = _median_seconds(lambda: method.run(M, init, out), repeats, min_run_time, threads)
-                R = method.run(M, init, out)
+                runs = _median_seconds(lambda: method.run(M_used, init_used, out_used), repeats, min_run_time,
+                                       threads)
+                R = method.run(M_used, init_used, out_used)
                 info = None
                 if method.diagnostics is not None:
                     start = init[:k] if method.diagnostics["warm"] else None
                     info = torchrot.fit_rotation_info(M[:k], start, variant=method.diagnostics["variant"])
-            row = Row(part, data, method.name, str(dtype).replace("torch.", ""), n, threads,
-                      ns_per_matrix=statistics.median(runs) / n * 1e9, runs_ns=[r / n * 1e9 for r in runs],
+                steps = method.iterations(M[:k_used], init[:k_used]) if method.iterations is not None else None
+            row = Row(part, data, method.name, str(dtype).replace("torch.", ""), used, threads,
+                      ns_per_matrix=statistics.median(runs) / used * 1e9, runs_ns=[r / used * 1e9 for r in runs],
                       isa=method.isa)
             if method.group != "floor":
-                for key, value in _accuracy(R[:k], M64, R_star).items():
+                for key, value in _accuracy(R[:k_used], M64[:k_used], R_star[:k_used]).items():
                     setattr(row, key, value)
             if info is not None:
                 row.mean_iterations = info.iterations.double().mean().item()
                 row.fallback_rate = (info.status == 1).double().mean().item()
+            if steps is not None:
+                row.mean_iterations = steps.double().mean().item()
             rows.append(row)
             log(f"  {part:7s} {data:13s} {row.dtype:7s} N={n:<9d} {threads}T  {method.name:48s} "
                 f"{row.ns_per_matrix:10.2f} ns/matrix")
@@ -232,21 +295,23 @@ class Plan:
     variants: tuple[str, ...] = ("newton", "conservative")
     repeats: int = 5
     min_run_time: float = 0.1
+    comparison_n: int | None = 20_000  # the paper's comparison methods run on this many (None: methods_n)
 
 
 QUICK = Plan()
 FULL = Plan(scaling_n=(1_000, 10_000, 100_000, 1_000_000, 10_000_000), methods_n=1_000_000,
-            dtypes=(torch.float32, torch.float64), all_isas=True, variants=VARIANTS, repeats=5, min_run_time=0.2)
+            dtypes=(torch.float32, torch.float64), all_isas=True, variants=VARIANTS, repeats=5, min_run_time=0.2,
+            comparison_n=None)
 
 
 def run_plan(plan: Plan, log: Callable[[str], None] = print) -> list[Row]:
     rows: list[Row] = []
-    scaling = [m for m in all_methods(None, ("conservative",), first_touch=False)
+    scaling = [m for m in all_methods(None, ("conservative",), first_touch=False, comparison=False)
                if m.group != "torchrot" or "newton" not in m.name]
     for data in plan.scaling_data:
         for n in plan.scaling_n:
             rows += run_case("scaling", data, n, torch.float32, 1, scaling, plan.repeats, plan.min_run_time, log)
-    methods = all_methods(supported_isas() if plan.all_isas else None, plan.variants)
+    methods = all_methods(supported_isas() if plan.all_isas else None, plan.variants, comparison_n=plan.comparison_n)
     for dtype in plan.dtypes:
         for threads in plan.threads:
             for data in plan.methods_data:
@@ -291,13 +356,14 @@ def _fmt(x: float | None, spec: str) -> str:
 def format_table(rows: list[Row]) -> str:
     """Markdown table: ns/matrix beside SVD and copy of the same run, accuracy."""
     header = ("| data | dtype | N | threads | method | ns/matrix | speedup vs SVD | time vs copy | max err | "
-              "median err | share >1e-3 | max shortfall | mean iters | fallback |")
+              "median err | share >1e-3 | failures | max shortfall | mean iters | fallback |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
         lines.append(
             f"| {r.data} | {r.dtype} | {r.n:.0e} | {r.threads} | {r.method} | {r.ns_per_matrix:.2f} | "
             f"{_fmt(r.speedup_vs_svd, '.1f')} | {_fmt(r.time_vs_copy, '.2f')} | {_fmt(r.max_error, '.1e')} | "
-            f"{_fmt(r.median_error, '.1e')} | {_fmt(r.share_above_1e3, '.2%')} | {_fmt(r.max_shortfall, '.1e')} | "
+            f"{_fmt(r.median_error, '.1e')} | {_fmt(r.share_above_1e3, '.2%')} | {_fmt(r.failures, 'd')} | "
+            f"{_fmt(r.max_shortfall, '.1e')} | "
             f"{_fmt(r.mean_iterations, '.2f')} | {_fmt(r.fallback_rate, '.3%')} |"
         )
     return "\n".join(lines)

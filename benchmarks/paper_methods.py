@@ -1,0 +1,73 @@
+"""The paper's comparison methods (torchrot.methods) beside torch.linalg.svd, the
+memory copy and torchrot, timed in one run on the same data: the README table.
+
+    python benchmarks/paper_methods.py                  # N = 1e5, float32, 1 thread
+    python benchmarks/paper_methods.py --n 1e6 --data warm rot60 uniform --json out.json
+
+Rows come from ``torchrot.benchmark.run_case`` (medians of ``--repeats``
+``blocked_autorange`` medians; accuracy against float64 SVD on every matrix).
+Methods with ``sample_n`` (Mueller's converged mode) run on the first matrices
+only; their N column says how many.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import asdict
+
+import torch
+
+from torchrot.benchmark import PAPER, all_methods, machine_info, run_case
+from torchrot.testing import DISTRIBUTIONS
+
+TORCHROT_ROWS = ("torchrot 1-step warm, conservative", "torchrot converged cold, conservative", "torchrot converged warm")
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+def selected_methods():
+    """copy_, torch.linalg.svd, three torchrot modes and every paper method."""
+    keep = ("copy_ (memory floor)", "torch.linalg.svd") + TORCHROT_ROWS
+    return [m for m in all_methods(None, ("conservative",), first_touch=False)
+            if m.group == PAPER or m.name in keep]
+
+
+def _fmt(x, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def table(rows) -> str:
+    lines = ["| data | method | N | ns/matrix | x SVD | x copy | max err | median err | share >1e-3 | failures "
+             "| mean steps |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r.data} | {r.method} | {r.n:.0e} | {r.ns_per_matrix:.0f} | {_fmt(r.speedup_vs_svd, '.2f')} | "
+            f"{_fmt(r.time_vs_copy, '.0f')} | {_fmt(r.max_error, '.1e')} | {_fmt(r.median_error, '.1e')} | "
+            f"{_fmt(r.share_above_1e3, '.2%')} | {_fmt(r.failures, 'd')} | {_fmt(r.mean_iterations, '.1f')} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=lambda t: int(float(t)), default=100_000, help="matrices per data set")
+    parser.add_argument("--data", nargs="+", default=["warm", "rot60", "uniform"], choices=sorted(DISTRIBUTIONS))
+    parser.add_argument("--dtype", default="float32", choices=sorted(DTYPES))
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--min-run-time", type=float, default=0.1)
+    parser.add_argument("--json", help="also write the rows and the machine to this JSON file")
+    args = parser.parse_args(argv)
+    print(f"machine: {machine_info()}")
+    rows = []
+    for data in args.data:
+        rows += run_case("methods", data, args.n, DTYPES[args.dtype], args.threads, selected_methods(),
+                         args.repeats, args.min_run_time, log=lambda line: print(line, file=sys.stderr))
+    print(table(rows))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"machine": machine_info(), "args": vars(args), "rows": [asdict(r) for r in rows]}, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
