@@ -3,6 +3,7 @@ memory copy and torchrot, timed in one run on the same data: the README table.
 
     python benchmarks/paper_methods.py                  # N = 1e5, float32, 1 thread
     python benchmarks/paper_methods.py --n 1e6 --data warm rot60 uniform --json out.json
+    python benchmarks/paper_methods.py --wide           # the README table
 
 Rows come from ``torchrot.benchmark.run_case`` (medians of ``--repeats``
 ``blocked_autorange`` medians; accuracy against float64 SVD on every matrix).
@@ -47,6 +48,28 @@ def table(rows) -> str:
     return "\n".join(lines)
 
 
+def wide_table(rows) -> str:
+    """One line per method, per data set: ns/matrix, max error, failures (|R - R*|_F > 1e-3
+    or non-finite: count and share); the README's form."""
+    data_sets = list(dict.fromkeys(r.data for r in rows))
+    by_method: dict[str, dict] = {}
+    for r in rows:
+        by_method.setdefault(r.method, {})[r.data] = r
+    n_used = lambda r: "" if r.n == max(x.n for x in rows) else f" (N={r.n:.0e})"
+    failed = lambda r: "-" if r.failures is None else (f"{r.failures}" if r.failures == 0 else
+                                                        f"{r.failures} ({r.share_above_1e3:.2%})")
+    lines = ["| method | " + " | ".join(f"{d} ns/matrix | {d} max err | {d} failures" for d in data_sets) + " |",
+             "|---|" + "---|" * (3 * len(data_sets))]
+    for method, by_data in by_method.items():
+        cells = []
+        for d in data_sets:
+            r = by_data.get(d)
+            cells += (["-"] * 3 if r is None else
+                      [f"{r.ns_per_matrix:.0f}{n_used(r)}", _fmt(r.max_error, ".0e"), failed(r)])
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=lambda t: int(float(t)), default=100_000, help="matrices per data set")
@@ -56,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--min-run-time", type=float, default=0.1)
     parser.add_argument("--json", help="also write the rows and the machine to this JSON file")
+    parser.add_argument("--wide", action="store_true", help="also print one line per method (the README table)")
     args = parser.parse_args(argv)
     print(f"machine: {machine_info()}")
     rows = []
@@ -63,6 +87,9 @@ def main(argv: list[str] | None = None) -> int:
         rows += run_case("methods", data, args.n, DTYPES[args.dtype], args.threads, selected_methods(),
                          args.repeats, args.min_run_time, log=lambda line: print(line, file=sys.stderr))
     print(table(rows))
+    if args.wide:
+        print()
+        print(wide_table(rows))
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"machine": machine_info(), "args": vars(args), "rows": [asdict(r) for r in rows]}, f, indent=1)
