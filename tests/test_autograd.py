@@ -98,6 +98,21 @@ def test_matches_svd_autograd_where_finite():
         assert err.max() < 1e-8, f"gradient_eps={eps}: max relative error {err.max():.3g}"
 
 
+@pytest.mark.parametrize("name", ("warm", "uniform", "gaussian"))
+def test_float32_gradient_as_accurate_as_float32_svd(name):
+    """float32 rounding is amplified by the system's condition only once (no
+    A^2 is formed): on condition-1e3 data the 99th percentile of the relative
+    error against float64 SVD autograd stays at float32 SVD's level."""
+    M = make_matrices(name, 5000, seed=1)
+    G = torch.randn(M.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    reference = _svd_gradient(M, G)
+    relative = lambda g: ((g.double() - reference).norm(dim=(-2, -1)) / reference.norm(dim=(-2, -1)))
+    ours = relative(_gradient(M.float(), G.float()))
+    svd32 = relative(_svd_gradient(M.float(), G.float()))
+    svd32 = svd32[torch.isfinite(svd32)]
+    assert ours.quantile(0.99) <= 2 * svd32.quantile(0.99) and ours.max() <= 2 * svd32.max()
+
+
 def test_matches_roma_special_procrustes():
     roma = pytest.importorskip("roma")
     M = make_matrices("uniform", 500, seed=2)
