@@ -33,17 +33,23 @@ bool is_supported_dtype(at::ScalarType t) {
 }
 
 void check_matrix_arg(const at::Tensor& t, const char* name) {
+  TORCH_CHECK(t.defined(), kOpName, ": ", name, " must be a tensor of shape (..., 3, 3), got None");
   TORCH_CHECK(t.dim() >= 2 && t.size(-1) == 3 && t.size(-2) == 3, kOpName, ": ", name,
               " must have shape (..., 3, 3), got ", t.sizes());
   TORCH_CHECK(is_supported_dtype(t.scalar_type()), kOpName, ": ", name,
               " must be float32, float64, float16 or bfloat16, got ", t.scalar_type());
 }
 
+// Largest step count accepted: more steps never help (max_iter=None converges
+// with a guaranteed fallback), and on flat problems (rank-1 M) a lane can
+// step without converging until its cap, which made huge values hang.
+constexpr int64_t kMaxIter = 1000;
+
 FitOptions parse_options(std::optional<int64_t> max_iter, c10::string_view variant) {
   FitOptions options;
   if (max_iter.has_value()) {
-    TORCH_CHECK(*max_iter >= 1, kOpName, ": max_iter must be None (iterate to convergence) or >= 1, got ",
-                *max_iter);
+    TORCH_CHECK(*max_iter >= 1 && *max_iter <= kMaxIter, kOpName,
+                ": max_iter must be None (iterate to convergence) or >= 1 and <= ", kMaxIter, ", got ", *max_iter);
     options.max_iter = *max_iter;
   }
   options.variant = parse_variant(variant);
@@ -68,6 +74,7 @@ at::Tensor checked_init(const at::Tensor& M, const std::optional<at::Tensor>& in
 }
 
 void check_out(const at::Tensor& M, const at::Tensor& out) {
+  TORCH_CHECK(out.defined(), kOpName, ": out must be a tensor of M's shape, got None");
   TORCH_CHECK(out.device() == M.device(), kOpName, ": out must be on M's device (", M.device(), "), got ",
               out.device());
   TORCH_CHECK(out.scalar_type() == M.scalar_type(), kOpName, ": out must have M's dtype (",
@@ -208,6 +215,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_cpu_op(
 constexpr const char* kBackwardName = "torchrot.fit_rotation_backward";
 
 void check_tangent_arg(const at::Tensor& t, const char* name, const at::Tensor& R) {
+  TORCH_CHECK(t.defined(), kBackwardName, ": ", name, " must be a tensor of shape (..., 3, 3), got None");
   TORCH_CHECK(t.dim() >= 2 && t.size(-1) == 3 && t.size(-2) == 3, kBackwardName, ": ", name,
               " must have shape (..., 3, 3), got ", t.sizes());
   TORCH_CHECK(t.device() == R.device(), kBackwardName, ": ", name, " must be on R's device (", R.device(),
@@ -233,6 +241,7 @@ MatrixBatch broadcast_view(const at::Tensor& t, at::IntArrayRef shape, int64_t n
 // kernel/rotation_gradient.h). grad has R's shape; M broadcasts to it.
 at::Tensor fit_rotation_backward_cpu_op(const at::Tensor& grad, const at::Tensor& R, const at::Tensor& M,
                                         double gradient_eps) {
+  TORCH_CHECK(R.defined(), kBackwardName, ": R must be a tensor of shape (..., 3, 3), got None");
   TORCH_CHECK(R.dim() >= 2 && R.size(-1) == 3 && R.size(-2) == 3, kBackwardName,
               ": R must have shape (..., 3, 3), got ", R.sizes());
   TORCH_CHECK(is_supported_dtype(R.scalar_type()), kBackwardName,

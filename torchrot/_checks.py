@@ -12,24 +12,31 @@ VARIANTS = ("newton", "conservative", "gershgorin")
 SUPPORTED_DTYPES = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
 
 
-def check_matrix_arg(t: torch.Tensor, name: str) -> None:
+def check_matrix_arg(t: torch.Tensor, name: str, op: str = OP_NAME) -> None:
+    """``t`` is a float32/float64/float16/bfloat16 tensor of shape (..., 3, 3);
+    errors name the function ``op`` and the argument ``name``."""
     if not isinstance(t, torch.Tensor):
-        raise TypeError(f"{OP_NAME}: {name} must be a torch.Tensor, got {type(t).__name__}")
+        raise TypeError(f"{op}: {name} must be a torch.Tensor, got {type(t).__name__}")
     if t.dim() < 2 or t.shape[-1] != 3 or t.shape[-2] != 3:
-        raise ValueError(f"{OP_NAME}: {name} must have shape (..., 3, 3), got {list(t.shape)}")
+        raise ValueError(f"{op}: {name} must have shape (..., 3, 3), got {list(t.shape)}")
     if t.dtype not in SUPPORTED_DTYPES:
         raise TypeError(
-            f"{OP_NAME}: {name} must be float32, float64, float16 or bfloat16, got {t.dtype}"
+            f"{op}: {name} must be float32, float64, float16 or bfloat16, got {t.dtype}"
         )
+
+
+# Largest step count accepted (csrc/ops.cpp kMaxIter): more steps never help,
+# and on flat problems a lane steps until its cap (huge values hung).
+MAX_ITER = 1000
 
 
 def check_options(max_iter, variant) -> None:
     if max_iter is not None:
         if isinstance(max_iter, bool) or not isinstance(max_iter, int):
             raise TypeError(f"{OP_NAME}: max_iter must be None or an int >= 1, got {max_iter!r}")
-        if max_iter < 1:
+        if not 1 <= max_iter <= MAX_ITER:
             raise ValueError(
-                f"{OP_NAME}: max_iter must be None (iterate to convergence) or >= 1, got {max_iter}"
+                f"{OP_NAME}: max_iter must be None (iterate to convergence) or >= 1 and <= {MAX_ITER}, got {max_iter}"
             )
     if variant not in VARIANTS:
         raise ValueError(

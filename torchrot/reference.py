@@ -16,7 +16,7 @@ import math
 
 import torch
 
-from torchrot._checks import OP_NAME, check_all, check_backward
+from torchrot._checks import OP_NAME, check_all, check_backward, check_matrix_arg
 
 # Mirrors kernel::Tolerances (csrc/kernel/fit_rotation_impl.h).
 CONVERGED_CAP = 12
@@ -41,6 +41,7 @@ def rotation_svd(M: torch.Tensor) -> torch.Tensor:
         ``(..., 3, 3)`` rotations, det R = +1. Column-vector convention: for
         centred point sets M = sum_i w_i y_i x_i^T, R x_i ~ y_i.
     """
+    check_matrix_arg(M, "M", op="torchrot.rotation_svd")
     U, _, Vh = torch.linalg.svd(M)
     d = torch.linalg.det(U @ Vh)
     D = torch.ones(M.shape[:-1], dtype=M.dtype, device=M.device)
