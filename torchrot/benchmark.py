@@ -32,13 +32,14 @@ import torch.utils.benchmark as tbench
 import torchrot
 from torchrot import baselines
 from torchrot import methods as paper
+from torchrot.apps.datasets import RECORDED as RECORDED_DATA
 from torchrot.reference import rotation_svd
 from torchrot.testing import make_warm_start
 
 Tensor = torch.Tensor
 ISAS = ("scalar", "default", "avx2", "avx512")
 VARIANTS = ("newton", "conservative", "gershgorin")
-WARM_DATA = ("warm", "warm_cond1e5")
+WARM_DATA = ("warm", "warm_cond1e5") + RECORDED_DATA  # recorded solver data: init is the previous rotation
 ACCURACY_SAMPLE = 1_000_000  # accuracy is measured on the first matrices of each data set
 SLOW_MAX_N = 1_000_000  # SVD-based baselines are not run above this N
 PAPER = "paper method"
@@ -220,6 +221,17 @@ def _accuracy(R: Tensor, M64: Tensor, R_star: Tensor) -> dict:
     }
 
 
+def benchmark_data(data: str, n: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """``(M, init)`` of data set ``data``: a ``torchrot.testing`` distribution
+    (``make_warm_start``) or a recorded solver data set ("arap", "elasticity":
+    ``torchrot.apps.datasets``, recorded on first use, then cached)."""
+    if data in RECORDED_DATA:
+        from torchrot.apps.datasets import benchmark_data as recorded
+
+        return recorded(data, n, seed=0, dtype=dtype)
+    return make_warm_start(data, n, seed=0, dtype=dtype)
+
+
 def _applicable(method: Method, data: str, n: int, dtype: torch.dtype) -> bool:
     if method.warm_only and data not in WARM_DATA:
         return False
@@ -231,7 +243,7 @@ def _applicable(method: Method, data: str, n: int, dtype: torch.dtype) -> bool:
 def run_case(part: str, data: str, n: int, dtype: torch.dtype, threads: int, methods: list[Method],
              repeats: int, min_run_time: float, log: Callable[[str], None] = print) -> list[Row]:
     """Times every applicable method on one data set; SVD and copy included."""
-    M, init = make_warm_start(data, n, seed=0, dtype=dtype)
+    M, init = benchmark_data(data, n, dtype)
     out = torch.empty_like(M)
     k = min(n, ACCURACY_SAMPLE)
     M64 = M[:k].double()

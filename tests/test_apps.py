@@ -1,0 +1,272 @@
+"""torchrot.apps: meshes, ARAP (against libigl), elasticity, recording, cached
+data sets and their use by the benchmark. Small meshes only (a few seconds)."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("scipy")
+igl = pytest.importorskip("igl")
+
+import torchrot  # noqa: E402
+from torchrot import benchmark  # noqa: E402
+from torchrot.apps import datasets, experiments  # noqa: E402
+from torchrot.apps.arap import ArapSolver  # noqa: E402
+from torchrot.apps.elasticity import ElasticitySolver  # noqa: E402
+from torchrot.apps.local_step import RotationFit, keep_better  # noqa: E402
+from torchrot.apps.meshes import capsule, load_surface, octopus  # noqa: E402
+from torchrot.apps.recording import Recorder, load_recording  # noqa: E402
+from torchrot.apps.sessions import DropScript, HandleScript, run_arap_session, run_elasticity_session  # noqa: E402
+from torchrot.apps.statistics import recording_statistics, rotation_angle  # noqa: E402
+from torchrot.testing import random_rotations  # noqa: E402
+
+TINY_ARAP = datasets.ArapDataConfig(resolution=6, frames=4, iterations=2, max_per_step=50)
+TINY_ELASTICITY = datasets.ElasticityDataConfig(resolution=8, frames=6, iterations=2, max_per_step=40)
+
+
+# -- meshes -------------------------------------------------------------------------
+def test_capsule_is_a_closed_outward_surface():
+    mesh = capsule(8, half_length=1.0)
+    assert len(mesh.V) == 6 * 8**2 + 2 + 4 * 8 * 8  # cube sphere + 8 rings of 32 vertices
+    assert igl.euler_characteristic(mesh.F) == 2
+    assert igl.is_edge_manifold(mesh.F)[0]
+    # outward orientation: the signed volume (divergence theorem) is positive and close to the capsule's
+    a, b, c = (mesh.V[mesh.F[:, k]] for k in range(3))
+    volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6
+    exact = 4 / 3 * np.pi + np.pi * 2.0
+    assert 0.97 * exact < volume < exact
+
+
+def test_capsule_rejects_odd_resolution():
+    with pytest.raises(ValueError, match="resolution"):
+        capsule(7)
+
+
+def test_octopus_tets_are_positive_and_connected():
+    mesh = octopus(8)
+    assert mesh.is_volume
+    assert np.all(igl.volume(mesh.V, mesh.F) > 0)
+    assert mesh.V[:, 2].min() == 0.0
+    from scipy.sparse.csgraph import connected_components
+
+    assert connected_components(igl.adjacency_matrix(mesh.F))[0] == 1
+
+
+def test_default_meshes_are_large_enough():
+    assert len(capsule().V) >= 50_000
+    assert len(octopus().F) >= 20_000
+
+
+def test_load_surface_round_trip(tmp_path):
+    mesh = capsule(4)
+    path = str(tmp_path / "capsule.obj")
+    igl.writeOBJ(path, mesh.V, mesh.F)
+    loaded = load_surface(path)
+    assert loaded.V.shape == mesh.V.shape and loaded.F.shape == mesh.F.shape
+    np.testing.assert_allclose(loaded.V, mesh.V, atol=1e-6)
+    with pytest.raises(FileNotFoundError, match="no mesh file"):
+        load_surface(str(tmp_path / "missing.obj"))
+
+
+# -- local step ---------------------------------------------------------------------
+def test_rotation_fit_methods_agree_and_reject_unknown():
+    gen = torch.Generator().manual_seed(0)
+    R_prev = random_rotations(200, gen)
+    M = R_prev @ random_rotations(200, gen, max_angle=0.05) @ torch.diag(torch.tensor([3.0, 2.0, 1.0],
+                                                                                     dtype=torch.float64))
+    exact = torchrot.rotation_svd(M)
+    for method in ("svd", "converged"):
+        assert (RotationFit(method)(M, R_prev) - exact).abs().max() < 1e-12
+    one = RotationFit("one_step")(M, R_prev)
+    assert (one - exact).abs().max() < 1e-4
+    with pytest.raises(ValueError, match="method"):
+        RotationFit("qr")
+    with pytest.raises(ValueError, match="variant"):
+        RotationFit("one_step", variant="damped")
+
+
+def test_keep_better_restores_worse_rotations():
+    M = torch.eye(3, dtype=torch.float64).expand(2, 3, 3)
+    R_prev = torch.eye(3, dtype=torch.float64).expand(2, 3, 3).clone()
+    R = R_prev.clone()
+    R[1] = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))  # worse for M = I
+    assert keep_better(R, R_prev, M) == 1
+    assert torch.equal(R, R_prev)
+
+
+# -- ARAP -----------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def validation():
+    """Every fit and igl.arap_solve from the same start on a small capsule."""
+    return experiments.validate_arap_against_libigl(capsule(6), HandleScript(frames=40), iterations=300,
+                                                    start_frame=10, jump_frames=2)
+
+
+@pytest.mark.parametrize("fit", ["svd", "one_step", "converged"])
+def test_arap_converged_energy_matches_libigl(validation, fit):
+    result = validation["fits"][fit]
+    assert result["last_relative_change"] < 1e-9, "not converged: the comparison would be meaningless"
+    assert abs(result["relative_difference_to_libigl"]) < 1e-6
+    assert abs(result["relative_difference_to_svd"]) < 1e-6
+
+
+@pytest.mark.parametrize("fit", ["svd", "one_step", "converged"])
+def test_arap_energy_never_increases(validation, fit):
+    assert validation["fits"][fit]["max_relative_increase"] <= 1e-10
+
+
+def test_arap_session_energy_monotone_and_handles_exact():
+    mesh = capsule(6)
+    script = HandleScript(frames=5)
+    handles, moving = script.handles(mesh.V)
+    solver = ArapSolver(mesh.V, mesh.F, handles, RotationFit("one_step"))
+    energies: list = []
+    state = run_arap_session(solver, script, 3, energies=energies)
+    tolerance = 1e-10 * max(e for *_, e in energies)  # rounding of the energy evaluation
+    previous = None
+    for frame, iteration, after_local, after_global in energies:
+        if previous is not None:
+            assert after_local <= previous + tolerance  # local step: same positions, better rotations
+        if iteration > 0:  # (the first global step of a frame moves the handles: a new problem)
+            assert after_global <= after_local + tolerance
+        previous = after_global
+    # the handles sit on their last targets, the rotations are rotations
+    np.testing.assert_allclose(state.P.numpy()[handles], script.targets(mesh.V, script.frames - 1), atol=1e-12)
+    R = state.R
+    assert torch.allclose(R.mT @ R, torch.eye(3, dtype=R.dtype).expand_as(R), atol=1e-12)
+
+
+def test_arap_float32_local_step_reaches_the_same_energy():
+    mesh = capsule(6)
+    script = HandleScript(frames=5)
+    handles, _ = script.handles(mesh.V)
+    finals = []
+    for dtype in (torch.float64, torch.float32):
+        solver = ArapSolver(mesh.V, mesh.F, handles, RotationFit("converged"), dtype=dtype)
+        state = run_arap_session(solver, script, 40)
+        assert state.Rt.dtype == dtype
+        finals.append(solver.energy(state.P))
+    assert abs(finals[1] - finals[0]) <= 1e-5 * finals[0]
+
+
+def test_arap_rejects_bad_arguments():
+    mesh = capsule(4)
+    with pytest.raises(ValueError, match="handles"):
+        ArapSolver(mesh.V, mesh.F, np.array([len(mesh.V)]))
+    with pytest.raises(ValueError, match="dtype"):
+        ArapSolver(mesh.V, mesh.F, np.array([0]), dtype=torch.float16)
+
+
+# -- elasticity -------------------------------------------------------------------------
+def test_elasticity_falls_lands_and_stays_finite_above_ground():
+    mesh = octopus(8)
+    solver = ElasticitySolver(mesh.V, mesh.F, iterations=3)
+    np.testing.assert_allclose((solver.L + igl.cotmatrix(mesh.V, mesh.F)).toarray(), 0, atol=1e-12)
+    state = solver.initial_state(lift=0.2)
+    z0 = state.x[:, 2].mean().item()
+    lowest = []
+    for frame in range(40):
+        energies: list = []
+        state = solver.step(state, frame=frame, energies=energies)
+        assert all(b <= a * (1 + 1e-10) for a, b in zip(energies, energies[1:])), "energy rose within a step"
+        assert torch.isfinite(state.x).all() and torch.isfinite(state.v).all()
+        lowest.append(state.x[:, 2].min().item())
+    assert min(lowest) >= solver.material.ground  # never below the ground
+    assert lowest[-1] == solver.material.ground  # resting on it
+    assert state.x[:, 2].mean().item() < z0  # it fell
+    assert solver.refactorizations >= 1
+
+
+# -- recording, data sets, benchmark ----------------------------------------------------
+def test_recording_round_trip(tmp_path):
+    mesh = capsule(4)
+    script = HandleScript(frames=3)
+    handles, _ = script.handles(mesh.V)
+    solver = ArapSolver(mesh.V, mesh.F, handles, RotationFit("converged"))
+    recorder = Recorder(str(tmp_path / "rec"), "arap", mesh.name, max_per_step=30)
+    run_arap_session(solver, script, 2, recorder)
+    manifest = recorder.finish({"test": True})
+    assert manifest["steps"] == 6 and manifest["matrices"] == 180
+    rec = load_recording(str(tmp_path / "rec"))
+    assert len(rec) == 180
+    assert torch.equal(rec.frame, torch.arange(3).repeat_interleave(60))
+    assert torch.equal(rec.iteration, torch.tensor([0, 1]).repeat_interleave(30).repeat(3))
+    assert torch.allclose(rec.M_local, rec.R_prev.mT @ rec.M)
+    eye = torch.eye(3, dtype=torch.float64)
+    assert torch.allclose(rec.R_prev.mT @ rec.R_prev, eye.expand_as(rec.R_prev), atol=1e-12)
+    assert torch.equal(rec.R_prev[:30], eye.expand(30, 3, 3))  # the first step has no previous rotation
+    # a step's warm start is the previous step's fit of the same vertices
+    torch.testing.assert_close(rec.R_prev[30:60], torchrot.rotation_svd(rec.M[:30]), atol=1e-10, rtol=0)
+    with pytest.raises(FileExistsError):
+        Recorder(str(tmp_path / "rec"), "arap", mesh.name)
+
+
+def test_recorder_rejects_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="max_per_step"):
+        Recorder(str(tmp_path), "arap", "m", max_per_step=0)
+    with pytest.raises(FileNotFoundError, match="no finished recording"):
+        load_recording(str(tmp_path))
+
+
+def test_dataset_cache_second_request_loads(tmp_path, monkeypatch):
+    cache = str(tmp_path / "cache")
+    folder = datasets.ensure_dataset("arap", TINY_ARAP, cache, progress=False)
+    assert folder.startswith(cache) and os.path.isfile(os.path.join(folder, "manifest.json"))
+
+    def fail(*args, **kwargs):
+        raise AssertionError("regenerated a cached data set")
+
+    monkeypatch.setattr(datasets, "_generate_arap", fail)
+    assert datasets.ensure_dataset("arap", TINY_ARAP, cache, progress=False) == folder
+    rec = datasets.load_dataset("arap", TINY_ARAP, cache)
+    assert len(rec) == 4 * 2 * 50
+    # another configuration is another folder
+    assert datasets.dataset_folder("arap", TINY_ARAP, cache) != datasets.dataset_folder("arap", None, cache)
+    with pytest.raises(ValueError, match="unknown recorded data set"):
+        datasets.dataset_folder("cloth", None, cache)
+
+
+def test_warm_start_pairs_draw_and_repeat(tmp_path):
+    cache = str(tmp_path / "cache")
+    M, init = datasets.warm_start_pairs("elasticity", 500, dtype=torch.float32, config=TINY_ELASTICITY, cache=cache)
+    assert M.shape == init.shape == (500, 3, 3) and M.dtype == torch.float32
+    total = len(datasets.load_dataset("elasticity", TINY_ELASTICITY, cache))
+    assert total == 6 * 2 * 40
+    M, _ = datasets.warm_start_pairs("elasticity", total + 10, config=TINY_ELASTICITY, cache=cache)
+    assert M.shape[0] == total + 10
+
+
+def test_benchmark_times_methods_on_recorded_data(tmp_path):
+    cache = str(tmp_path / "cache")
+    methods = [m for m in benchmark.all_methods(None, ("conservative",), first_touch=False, comparison=True)
+               if m.sample_n is None]
+    with datasets.active({"arap": TINY_ARAP}, cache):
+        rows = benchmark.run_case("apps", "arap", 400, torch.float32, 1, methods, 1, 0.001, log=lambda s: None)
+    names = {r.method for r in rows}
+    assert "torch.linalg.svd" in names
+    assert "torchrot 1-step warm, conservative" in names  # recorded data count as warm data
+    for r in rows:
+        if r.method.startswith("torchrot converged") or r.method == "torch.linalg.svd":
+            assert r.max_error < 1e-4, r.method
+        assert r.ns_per_matrix > 0 and r.speedup_vs_svd is not None
+
+
+def test_recording_statistics(tmp_path):
+    cache = str(tmp_path / "cache")
+    stats = recording_statistics(datasets.load_dataset("arap", TINY_ARAP, cache, progress=False), scatter=20)
+    assert stats["matrices"] == 400
+    assert sum(stats["angle_degrees"]["histogram"]["counts"]) == 400
+    assert len(stats["scatter"]["newton"]) == 20
+    assert 0 <= stats["one_step"]["newton"]["share_below_1e-5"] <= 1
+    assert stats["condition_number"]["median"] >= 1
+
+
+def test_rotation_angle_is_accurate_near_zero():
+    gen = torch.Generator().manual_seed(3)
+    for angle in (1e-9, 1e-4, 0.5, 3.0):
+        R = random_rotations(5, gen, max_angle=angle, concentration=0.0)
+        torch.testing.assert_close(rotation_angle(R), torch.full((5,), angle, dtype=torch.float64),
+                                   rtol=1e-9, atol=1e-15)

@@ -1,0 +1,210 @@
+"""The applications part of ``python -m torchrot bench``: the paper's
+Tables 1-2 and Figs. 5-7 on the built-in solver data.
+
+:func:`run_apps` records (or loads from the cache) the "arap" and
+"elasticity" data sets, computes their Fig. 5 statistics, times every
+benchmark method on them (Tables 1 and 2), runs the solver experiments (Figs.
+6 and 7, the libigl validation) and evaluates the targets;
+:func:`write_apps` writes ``apps.json`` (every number), ``apps.md`` and
+``fig5_data.png``, ``fig6_local_global.png``, ``fig7_energy_time.png``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+
+from torchrot.apps import datasets, experiments, figures, report
+from torchrot.apps.meshes import capsule, load_surface, octopus
+from torchrot.apps.sessions import DropScript, HandleScript
+from torchrot.apps.statistics import recording_statistics
+
+
+@dataclass
+class AppsPlan:
+    """What the applications part runs.
+
+    arap, elasticity: the recorded data sets' configurations.
+    table_n, dtypes, repeats, min_run_time: the Tables 1-2 benchmark
+        (N matrices drawn from each recording; 1 thread, as the paper).
+    timing_frames, timing_iterations: ARAP Fig. 6 frames x iterations;
+    elasticity_timing_frames: time steps timed for elasticity's Fig. 6.
+    trace_iterations, trace_reference_iterations: ARAP Fig. 7;
+    elasticity_trace_iterations: iterations of elasticity's Fig. 7 time step.
+    validation_resolution, validation_iterations: the libigl comparison's
+        capsule and iteration count (converged to ~1e-10 relative change).
+    threads: torch threads of the solver experiments.
+    local_dtypes: precisions of the local step timed for Fig. 6 (float32 is
+        the paper's; Fig. 7 and the validation run in float64).
+    """
+
+    arap: datasets.ArapDataConfig = field(default_factory=datasets.ArapDataConfig)
+    elasticity: datasets.ElasticityDataConfig = field(default_factory=datasets.ElasticityDataConfig)
+    table_n: int = 100_000
+    dtypes: tuple[torch.dtype, ...] = (torch.float32,)
+    repeats: int = 5
+    min_run_time: float = 0.1
+    all_isas: bool = False
+    timing_frames: int = 6
+    timing_iterations: int = 4
+    elasticity_timing_frames: int = 8
+    trace_iterations: int = 40
+    trace_reference_iterations: int = 60
+    elasticity_trace_iterations: int = 30
+    validation_resolution: int = 12
+    validation_iterations: int = 600
+    threads: int = 1
+    local_dtypes: tuple[torch.dtype, ...] = (torch.float32, torch.float64)
+
+
+QUICK = AppsPlan()
+FULL = AppsPlan(arap=datasets.ArapDataConfig(frames=60, max_per_step=6_000),  # 1.08M matrices
+                elasticity=datasets.ElasticityDataConfig(frames=90, max_per_step=2_400),  # 1.08M matrices
+                table_n=1_000_000, dtypes=(torch.float32, torch.float64), all_isas=True, timing_frames=10,
+                elasticity_timing_frames=16, trace_iterations=200, trace_reference_iterations=800,
+                elasticity_trace_iterations=60, validation_resolution=24, validation_iterations=3000)
+
+
+def _arap_mesh(plan: AppsPlan):
+    return load_surface(plan.arap.mesh_path) if plan.arap.mesh_path else capsule(plan.arap.resolution)
+
+
+def run_tables(plan: AppsPlan, cache: str | None, log: Callable[[str], None]) -> list:
+    """Every benchmark method on the recorded data (``torchrot.benchmark.run_case``):
+    Tables 1 and 2. torchrot runs with its scalar kernel (Table 1, the paper's
+    non-vectorized code) and its best kernel (Table 2)."""
+    from torchrot import benchmark
+
+    isas = benchmark.supported_isas()
+    kernels = ["scalar", isas[-1]] if not plan.all_isas else isas
+    methods = benchmark.all_methods(kernels, ("newton", "conservative"))
+    rows = []
+    with datasets.active({"arap": plan.arap, "elasticity": plan.elasticity}, cache):
+        for dtype in plan.dtypes:
+            for name in datasets.RECORDED:
+                rows += benchmark.run_case("apps", name, plan.table_n, dtype, 1, methods, plan.repeats,
+                                           plan.min_run_time, log)
+    return rows
+
+
+def run_apps(plan: AppsPlan = QUICK, cache: str | None = None, tables: bool = True,
+             log: Callable[[str], None] = print, progress: bool = True) -> tuple[dict, list]:
+    """Runs the applications part; returns (results, benchmark rows)."""
+    clock = time.perf_counter()
+    results: dict = {"plan": _plain_plan(plan), "datasets": {}, "statistics": {}}
+    for name, config in (("arap", plan.arap), ("elasticity", plan.elasticity)):
+        log(f"data set {name}: {datasets.dataset_folder(name, config, cache)}")
+        recording = datasets.load_dataset(name, config, cache, progress)
+        results["datasets"][name] = recording.manifest
+        log(f"  {len(recording):,} recorded matrices ({recording.manifest['steps']} local steps); statistics")
+        results["statistics"][name] = recording_statistics(recording)
+    rows = []
+    if tables:
+        rows = run_tables(plan, cache, log)
+    mesh, tets = _arap_mesh(plan), octopus(plan.elasticity.resolution)
+    script, drop = HandleScript(frames=plan.arap.frames), DropScript(frames=plan.elasticity.frames)
+    results["timings"] = {}
+    for dtype in plan.local_dtypes:
+        label = str(dtype).replace("torch.", "")
+        log(f"Fig. 6 ({label} local step): ARAP phase times on {mesh.name} ({len(mesh.V):,} vertices), "
+            f"elasticity on {tets.name} ({len(tets.F):,} tets)")
+        results["timings"][label] = {
+            "arap": experiments.arap_phase_times(mesh, script, plan.timing_frames, plan.timing_iterations,
+                                                 threads=plan.threads, dtype=dtype),
+            "elasticity": experiments.elasticity_phase_times(tets, drop, frames=plan.elasticity_timing_frames,
+                                                             threads=plan.threads, dtype=dtype)}
+    log("Fig. 7: energy against time")
+    results["traces"] = {
+        "arap": experiments.arap_energy_trace(mesh, script, iterations=plan.trace_iterations,
+                                              reference_iterations=plan.trace_reference_iterations,
+                                              threads=plan.threads),
+        "elasticity": experiments.elasticity_energy_trace(tets, drop, iterations=plan.elasticity_trace_iterations,
+                                                          threads=plan.threads),
+    }
+    small = capsule(plan.validation_resolution)
+    log(f"ARAP vs igl.arap_solve on {small.name} ({len(small.V):,} vertices, {plan.validation_iterations} iterations)")
+    results["validation"] = experiments.validate_arap_against_libigl(small, HandleScript(frames=plan.arap.frames),
+                                                                     plan.validation_iterations,
+                                                                     threads=plan.threads)
+    results["targets"] = report.targets(results)
+    results["seconds"] = time.perf_counter() - clock
+    return results, rows
+
+
+def _plain_plan(plan: AppsPlan) -> dict:
+    out = dataclasses.asdict(plan)
+    out["dtypes"] = [str(d).replace("torch.", "") for d in plan.dtypes]
+    return out
+
+
+def markdown(results: dict, rows: list, machine: dict | None = None) -> str:
+    """The applications report (Markdown)."""
+    parts = ["# torchrot applications: the paper's tables and figures on built-in solver data", ""]
+    if machine:
+        parts += [f"Machine: {machine}", ""]
+    parts += ["## Recorded data (Fig. 5)", "", report.statistics_table(results["statistics"]), "",
+              "![Fig. 5](fig5_data.png)", ""]
+    dtypes = sorted({r["dtype"] if isinstance(r, dict) else r.dtype for r in rows})
+    for dtype in dtypes:
+        parts += [f"## Table 1 analogue ({dtype}, 1 thread): speed-up over torch.linalg.svd, "
+                  "torchrot's scalar kernel", "", report.table1(rows, dtype=dtype), "",
+                  f"## Table 2 analogue ({dtype}, 1 thread): vectorized torchrot over torch.linalg.svd and "
+                  "libigl's McAdams et al. SVD", "", report.table2(rows, dtype=dtype), ""]
+    parts += ["## Local vs global step (Fig. 6)", ""]
+    for label, timings in results["timings"].items():
+        parts += [f"Local step in {label}:", "", report.phase_table(timings), ""]
+    parts += [
+              "![Fig. 6](fig6_local_global.png)", "", "## Energy against time (Fig. 7)", "",
+              "![Fig. 7](fig7_energy_time.png)", ""]
+    validation = results["validation"]
+    parts += ["## ARAP against libigl", "",
+              f"{validation['mesh']} ({validation['vertices']:,} vertices), {validation['iterations']} iterations "
+              f"from frame {validation['start_frame']} with the handles {validation['jump_frames']} frames ahead:", "",
+              "| solver | energy | relative difference to libigl | last relative change |", "|---|---|---|---|"]
+    for fit, v in validation["fits"].items():
+        parts.append(f"| {fit} | {v['energy']:.12g} | {v['relative_difference_to_libigl']:.1e} | "
+                     f"{v['last_relative_change']:.1e} |")
+    parts += [f"| igl.arap_solve | {validation['libigl']['energy']:.12g} | 0 | - |", "",
+              "## Targets", "", report.targets_markdown(results["targets"]), ""]
+    return "\n".join(parts)
+
+
+def print_summary(results: dict, rows: list, log: Callable[[str], None] = print) -> None:
+    """Prints the tables and targets."""
+    log("\n## Recorded data (Fig. 5)\n")
+    log(report.statistics_table(results["statistics"]))
+    for dtype in sorted({r.dtype for r in rows}):
+        log(f"\n## Table 1 analogue ({dtype}, 1 thread, recorded data): speed-up over torch.linalg.svd\n")
+        log(report.table1(rows, dtype=dtype))
+        log(f"\n## Table 2 analogue ({dtype}, 1 thread): vectorized torchrot\n")
+        log(report.table2(rows, dtype=dtype))
+    for label, timings in results["timings"].items():
+        log(f"\n## Local vs global step per iteration, ms (Fig. 6), local step in {label}\n")
+        log(report.phase_table(timings))
+    log("\n## Targets\n")
+    log(report.targets_markdown(results["targets"]))
+
+
+def write_apps(results: dict, rows: list, folder: str, machine: dict | None = None) -> list[str]:
+    """apps.json, apps.md and the three PNGs in ``folder``; returns the paths."""
+    os.makedirs(folder, exist_ok=True)
+    paths = {name: os.path.join(folder, name) for name in
+             ("apps.json", "apps.md", "fig5_data.png", "fig6_local_global.png", "fig7_energy_time.png")}
+    with open(paths["apps.json"], "w") as f:
+        json.dump({"machine": machine, **results,
+                   "rows": [r if isinstance(r, dict) else dataclasses.asdict(r) for r in rows]}, f, indent=1)
+    with open(paths["apps.md"], "w") as f:
+        f.write(markdown(results, rows, machine))
+    try:
+        figures.plot_fig5(results["statistics"], paths["fig5_data.png"])
+        figures.plot_fig6(results["timings"], paths["fig6_local_global.png"])
+        figures.plot_fig7(results["traces"], paths["fig7_energy_time.png"])
+    except ImportError:
+        print("matplotlib is not installed (pip install 'torchrot[bench]'): no figures written")
+        return [paths["apps.json"], paths["apps.md"]]
+    return list(paths.values())
