@@ -46,7 +46,7 @@ PAPER = "paper method"
 FAILURE_THRESHOLD = 1e-3  # |R - R*|_F above this (or a non-finite result) counts as a failure
 # Mueller et al.'s converged mode takes hundreds of steps per matrix (~1e5 ns/matrix in
 # eager PyTorch, plus ~0.2 s per call of per-step overhead in its long tail): it is timed
-# on the first matrices of each data set only.
+# on the first matrices of each data set only, and with 1 thread only.
 MUELLER_CONVERGED_SAMPLE_N = 2_000
 
 
@@ -66,6 +66,9 @@ class Method:
     # slow that ns/matrix no longer depends on N); the row reports the N actually used.
     sample_n: int | None = None
     iterations: Callable[[Tensor, Tensor], Tensor] | None = None  # (M, init) -> steps per matrix
+    # Not re-run with more threads (a cost made of thousands of tiny-tensor steps only adds
+    # thread-pool overhead there).
+    max_threads: int | None = None
 
 
 @dataclass
@@ -147,7 +150,7 @@ def paper_methods(sample_n: int | None = None) -> list[Method]:
                PAPER, warm_only=True, max_n=SLOW_MAX_N),
         Method(f"Mueller 2016, converged from init (cap {paper.MUELLER_CAP})",
                lambda M, init, out: paper.mueller(M, init), PAPER, sample_n=MUELLER_CONVERGED_SAMPLE_N,
-               iterations=lambda M, init: paper.mueller(M, init, return_iterations=True)[1]),
+               iterations=lambda M, init: paper.mueller(M, init, return_iterations=True)[1], max_threads=1),
         Method("Higham 1986 polar, LU inverse", lambda M, init, out: paper.higham_polar(M), PAPER,
                max_n=SLOW_MAX_N, iterations=lambda M, init: paper.higham_polar(M, return_iterations=True)[1]),
         Method("Higham 1986 polar, cofactor inverse", lambda M, init, out: paper.higham_polar(M, inverse="cofactor"),
@@ -232,10 +235,12 @@ def benchmark_data(data: str, n: int, dtype: torch.dtype) -> tuple[Tensor, Tenso
     return make_warm_start(data, n, seed=0, dtype=dtype)
 
 
-def _applicable(method: Method, data: str, n: int, dtype: torch.dtype) -> bool:
+def _applicable(method: Method, data: str, n: int, dtype: torch.dtype, threads: int = 1) -> bool:
     if method.warm_only and data not in WARM_DATA:
         return False
     if method.max_n is not None and n > method.max_n:
+        return False
+    if method.max_threads is not None and threads > method.max_threads:
         return False
     return not (method.float64_only and dtype != torch.float64)
 
@@ -253,7 +258,7 @@ def run_case(part: str, data: str, n: int, dtype: torch.dtype, threads: int, met
     torch.set_num_threads(threads)
     try:
         for method in methods:
-            if not _applicable(method, data, n, dtype):
+            if not _applicable(method, data, n, dtype, threads):
                 continue
             # slow methods run on the first sample_n matrices (their ns/matrix is flat in N)
             used = n if method.sample_n is None else min(n, method.sample_n)
