@@ -586,6 +586,32 @@ def test_derivatives_of_arbitrary_matrices(dtype):
     run()
 
 
+#: Inputs the fuzzing found bugs with (fixed since), kept as fixed cases:
+#: (dtype, M entries, max_iter, gradient_eps, G scale).
+REGRESSIONS = [
+    # forward: a Cayley step whose d^2 + w.w underflowed gave NaN (1 / (d^2 + w.w) = inf)
+    (torch.float32, [[1.0, 0.0, -1.0427839942509576e28], [-5.758594769909921e27, -3.848373797697573e28, 1.0],
+                     [-1.106119901282557e28, -3.4028234663852886e38, -9.884469107299525e27]], 1, 1e-6, 1.0),
+    # backward: M = 0 with eps^6 below the smallest normal (0 * inf)
+    (torch.float32, [[0.0] * 3] * 3, None, 1e-7, 1.0),
+    # backward: undamped near-singular system with a huge incoming gradient (inf - inf)
+    (torch.float32, [[0.0, 0.0, -0.7238574624061584], [0.41063886880874634, 0.0, 0.0],
+                     [0.0, 0.41063886880874634, 0.0]], None, 0.0, 1e30),
+    # backward: subnormal M whose |A|_F rounds below 1 (T_max / |A|_F = inf, 0 * inf)
+    (torch.float64, [[0.0] * 3, [0.0] * 3, [0.0, 0.0, 6.339035e-317]], None, 0.0, 1.0),
+]
+
+
+@pytest.mark.parametrize("case", range(len(REGRESSIONS)))
+def test_regressions(case):
+    dtype, entries, max_iter, gradient_eps, g_scale = REGRESSIONS[case]
+    M = torch.tensor(entries, dtype=torch.float64).to(dtype)[None].expand(19, 3, 3).contiguous()  # SIMD blocks + tail
+    G = torch.randn(M.shape, generator=torch.Generator().manual_seed(case), dtype=torch.float64) * g_scale
+    for variant in VARIANTS:
+        check_fit(M, None, max_iter, variant, what=f"regression {case}")
+        check_derivatives(M, None, max_iter, variant, G.to(dtype), gradient_eps, what=f"regression {case}")
+
+
 def test_batched_problem_has_what_it_promises():
     """The recipes draw every distribution of torchrot.testing, and their
     knobs do what they say (guards the fuzzing against going vacuous)."""

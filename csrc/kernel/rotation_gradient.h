@@ -143,7 +143,9 @@ inline Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const 
   // Undo the scaling by 1 / |M|_F = inv_frob / max |M_ij|. Below |M|_F ~
   // 1 / T_max (subnormal M) the exact derivative exceeds T's range: it
   // saturates at +-T_max (never inf, never 0 * inf = NaN).
-  const V scale = L::min(lift * inv_max, huge) * inv_frob;
+  // (Saturating after the product with inv_frob: |A|_F may round below 1, and
+  // T_max * inv_frob then overflowed to inf, and 0 * inf gave NaN.)
+  const V scale = L::min(lift * inv_max * inv_frob, huge);
   const V x_up = L::select(x_huge, V(std::ldexp(T(1), kHalfRange)), V(1));
   Mat3<V> tangent = times_cross(R, u);
   for (int k = 0; k < 9; ++k) tangent.a[k] = saturate(saturate(tangent.a[k] * scale) * x_up);
