@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from dataclasses import asdict
 
 import torch
 
+from torchrot.apps.datasets import RECORDED
 from torchrot.benchmark import PAPER, all_methods, machine_info, run_case
 from torchrot.testing import DISTRIBUTIONS
 
@@ -73,7 +75,10 @@ def wide_table(rows) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=lambda t: int(float(t)), default=100_000, help="matrices per data set")
-    parser.add_argument("--data", nargs="+", default=["warm", "rot60", "uniform"], choices=sorted(DISTRIBUTIONS))
+    parser.add_argument("--data", nargs="+", default=["warm", "rot60", "uniform"],
+                        choices=sorted(DISTRIBUTIONS) + list(RECORDED),
+                        help="generated distributions or the recorded ARAP/elasticity data (recorded on first "
+                             "use into $TORCHROT_CACHE, see torchrot.apps.datasets)")
     parser.add_argument("--dtype", default="float32", choices=sorted(DTYPES))
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=5)
@@ -81,18 +86,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", help="also write the rows and the machine to this JSON file")
     parser.add_argument("--wide", action="store_true", help="also print one line per method (the README table)")
     args = parser.parse_args(argv)
-    print(f"machine: {machine_info()}")
+    print(f"machine: {machine_info()}; load average {os.getloadavg()} (shared machine: medians of runs)")
     rows = []
     for data in args.data:
         rows += run_case("methods", data, args.n, DTYPES[args.dtype], args.threads, selected_methods(),
                          args.repeats, args.min_run_time, log=lambda line: print(line, file=sys.stderr))
+    print(f"load average at the end: {os.getloadavg()}")
     print(table(rows))
     if args.wide:
         print()
         print(wide_table(rows))
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"machine": machine_info(), "args": vars(args), "rows": [asdict(r) for r in rows]}, f, indent=1)
+            json.dump({"machine": machine_info(), "load_average_at_end": os.getloadavg(), "args": vars(args),
+                       "rows": [asdict(r) for r in rows]}, f, indent=1)
     return 0
 
 

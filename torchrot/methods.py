@@ -518,8 +518,8 @@ def kugelstadt(M: Tensor, init: Tensor, *, max_iter: int = 1) -> Tensor:
     turns it into a rotation with the quaternion ((1 - |omega|^2), 2 omega) /
     (1 + |omega|^2), a rotation by 4 atan(|z| / 2) about z, where the Cayley
     map Q(z) rotates by 2 atan(|z|). The two results therefore agree to third
-    order in the step, not to rounding: ~|z|^3 / 2 radians apart, 1e-7 at one
-    degree, 1e-3 at 15 degrees (``tests/test_methods.py`` checks that relation
+    order in the step, not to rounding: ~|z|^3 / 2 radians apart, 3e-7 for a one
+    degree step, 1e-3 for 15 degrees (``tests/test_methods.py`` checks that relation
     to rounding). Alg. 3's guards (gradient steps where det H ~ 0 or the
     Newton step descends) are kept; M is first divided by its largest entry
     so the paper's absolute threshold det H < 1e-9 is meaningful for any
