@@ -31,7 +31,7 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 def selected_methods():
     """copy_, torch.linalg.svd, three torchrot modes and every paper method."""
     keep = ("copy_ (memory floor)", "torch.linalg.svd") + TORCHROT_ROWS
-    return [m for m in all_methods(None, ("conservative",), first_touch=False)
+    return [m for m in all_methods(None, ("conservative",), first_touch=False, comparison_n=None)
             if m.group == PAPER or m.name in keep]
 
 

@@ -48,6 +48,8 @@ FAILURE_THRESHOLD = 1e-3  # |R - R*|_F above this (or a non-finite result) count
 # eager PyTorch, plus ~0.2 s per call of per-step overhead in its long tail): it is timed
 # on the first matrices of each data set only, and with 1 thread only.
 MUELLER_CONVERGED_SAMPLE_N = 2_000
+# The comparison methods' default sample (all_methods): their ns/matrix is flat in N beyond ~1e4.
+COMPARISON_N = 100_000
 
 
 @dataclass
@@ -170,10 +172,11 @@ def paper_methods(sample_n: int | None = None) -> list[Method]:
 
 
 def all_methods(isas: list[str] | None = None, variants: tuple[str, ...] = VARIANTS,
-                first_touch: bool = True, comparison: bool = True, comparison_n: int | None = None) -> list[Method]:
+                first_touch: bool = True, comparison: bool = True,
+                comparison_n: int | None = COMPARISON_N) -> list[Method]:
     """The floor, the baselines that are installed, torchrot per kernel and (with
     ``comparison``) the paper's comparison methods, on at most ``comparison_n``
-    matrices per data set."""
+    matrices per data set (None: all)."""
     methods = [
         Method("copy_ (memory floor)", lambda M, init, out: out.copy_(M), "floor"),
         Method("torch.linalg.svd", lambda M, init, out: rotation_svd(M), "baseline", max_n=SLOW_MAX_N),
@@ -320,7 +323,7 @@ class Plan:
 QUICK = Plan()
 FULL = Plan(scaling_n=(1_000, 10_000, 100_000, 1_000_000, 10_000_000), methods_n=1_000_000,
             dtypes=(torch.float32, torch.float64), all_isas=True, variants=VARIANTS, repeats=5, min_run_time=0.2,
-            comparison_n=100_000)
+            comparison_n=COMPARISON_N)
 
 
 def run_plan(plan: Plan, log: Callable[[str], None] = print) -> list[Row]:
