@@ -44,6 +44,7 @@ from __future__ import annotations
 import argparse
 import collections
 import ctypes
+import hashlib
 import json
 import os
 import platform
@@ -76,6 +77,10 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 # interleaved across cases so that load from other users spreads over all.
 TIME_N = 1_000_000
 SVD_N = 100_000  # SVD costs the same per matrix at any N; 1e6 would take seconds per call
+# Cache-resident timings: inputs and output of N = 1e4 float32 matrices (1.1 MB)
+# stay in the 2 MB L2 across calls, so these time the computation alone.
+CACHED_N = 10_000
+CACHED_CASES = ("copy", "add3", "onestep", "conv_warm", "cold_uniform")
 REPEATS = 5
 MIN_RUN_TIME = 0.2
 # Instruction counts: (N1, N2) per dtype; instructions per matrix are
@@ -177,8 +182,37 @@ def build_tools(folder: str) -> dict[str, str | None]:
     return built
 
 
-def extension_path() -> str:
-    return os.path.realpath(torchrot._C.__file__)
+def mapped_extension() -> dict:
+    """The extension as this process mapped it: path, inode, load base and the
+    executable segment [lo, hi). The file at the path may have been replaced
+    since (people rebuild and swap it atomically): the inode identifies the build."""
+    path = os.path.realpath(torchrot._C.__file__)
+    found = {"path": path, "base": None, "lo": None, "hi": None, "inode": None, "range": None}
+    with open("/proc/self/maps") as f:
+        for line in f:
+            parts = line.split(maxsplit=5)
+            if len(parts) < 6 or parts[5].strip().removesuffix(" (deleted)") != path:
+                continue
+            start, end = (int(x, 16) for x in parts[0].split("-"))
+            if int(parts[2], 16) == 0 and found["base"] is None:
+                found.update(base=start, inode=int(parts[4]), range=parts[0])
+            if "x" in parts[1]:
+                found.update(lo=start, hi=end)
+    return found
+
+
+def snapshot_extension(mapped: dict, target: str) -> bool:
+    """Copies the build this process mapped to `target` (for nm, objdump and
+    addr2line); False if it is no longer readable."""
+    try:
+        shutil.copyfile(f"/proc/self/map_files/{mapped['range']}", target)  # the mapped file itself
+        return True
+    except OSError:
+        pass
+    if os.stat(mapped["path"]).st_ino != mapped["inode"]:
+        return False
+    shutil.copyfile(mapped["path"], target)
+    return os.stat(mapped["path"]).st_ino == mapped["inode"]
 
 
 COPY_SYMBOL = "_ZN2at6native5copy_ERNS_6TensorERKS1_b"  # at::native::copy_(Tensor&, const Tensor&, bool)
@@ -221,6 +255,8 @@ def callgrind_worker(spec: dict) -> None:
     torch.set_num_threads(1)
     probes = ctypes.CDLL(spec["probes"])
     data, outs = _worker_data(spec)
+    if mapped_extension()["inode"] != spec["inode"]:
+        sys.exit("the extension was replaced before this worker loaded it: rerun")
     probes.bounds_cg_instrument()
     skipped, warm = [], set()
     for isa, dtype, key, n in spec["measurements"]:
@@ -239,28 +275,16 @@ def callgrind_worker(spec: dict) -> None:
         json.dump({"skipped": sorted(set(skipped))}, f)
 
 
-def _mapping(path: str) -> tuple[int, int, int]:
-    """(load base, start, end of the executable segment) of a mapped file."""
-    base = lo = hi = None
-    with open("/proc/self/maps") as f:
-        for line in f:
-            parts = line.split()
-            if len(parts) < 6 or os.path.realpath(parts[5]) != path:
-                continue
-            start, end = (int(x, 16) for x in parts[0].split("-"))
-            if int(parts[2], 16) == 0 and base is None:
-                base = start
-            if "x" in parts[1]:
-                lo, hi = start, end
-    return base, lo, hi
-
-
 def trace_worker(spec: dict) -> None:
     """Under the tracer: before each measured call, asks the tracer (SIGUSR1)
     to step through the next call of the kernel entry point."""
     torch.set_num_threads(1)
     data, outs = _worker_data(spec)
-    base, lo, hi = _mapping(spec["extension"])
+    mapped = mapped_extension()
+    if mapped["inode"] != spec["inode"]:  # the symbol offsets would point into another build
+        sys.exit(f"the extension was replaced before this worker loaded it (inode {mapped['inode']}, "
+                 f"expected {spec['inode']}): rerun")
+    base, lo, hi = mapped["base"], mapped["lo"], mapped["hi"]
     libtorch = ctypes.CDLL(os.path.join(os.path.dirname(torch.__file__), "lib", "libtorch_cpu.so"))
     copy_entry = ctypes.cast(libtorch[COPY_SYMBOL], ctypes.c_void_p).value
     for isa, dtype, key, n in spec["measurements"]:
@@ -286,7 +310,8 @@ def _write_spec(folder: str, name: str, spec: dict) -> str:
     return path
 
 
-def start_callgrind(tools: dict, folder: str, data_path: str, symbols: dict, env: dict) -> subprocess.Popen | None:
+def start_callgrind(tools: dict, folder: str, data_path: str, symbols: dict, inode: int,
+                    env: dict) -> subprocess.Popen | None:
     """The callgrind worker: scalar / default / AVX2, both dtypes, two N each,
     plus the AVX2 cross-check at the tracer's N. None if it cannot run."""
     if not tools["probes"] or not shutil.which("valgrind"):
@@ -296,7 +321,7 @@ def start_callgrind(tools: dict, folder: str, data_path: str, symbols: dict, env
     measurements += [("avx2", "float32", "onestep", n) for n in CROSSCHECK_N]
     out = os.path.join(folder, "callgrind")
     os.makedirs(out)
-    spec = _write_spec(folder, "callgrind", {"probes": tools["probes"], "data": data_path,
+    spec = _write_spec(folder, "callgrind", {"probes": tools["probes"], "data": data_path, "inode": inode,
                                              "measurements": measurements, "result": os.path.join(out, "result.json")})
     # Count inside the kernel entry points only, as the tracer does: the Python
     # side of a call varies by a few thousand instructions (GC, allocator).
@@ -307,7 +332,7 @@ def start_callgrind(tools: dict, folder: str, data_path: str, symbols: dict, env
     return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
-def start_tracer(tools: dict, folder: str, data_path: str, symbols: dict, so_path: str,
+def start_tracer(tools: dict, folder: str, data_path: str, symbols: dict, inode: int,
                  env: dict) -> subprocess.Popen | None:
     """The tracer worker: the best ISA (the traced cases per dtype, two N
     each) and the AVX2 cross-check. None if the tracer did not build."""
@@ -321,19 +346,20 @@ def start_tracer(tools: dict, folder: str, data_path: str, symbols: dict, so_pat
     os.makedirs(out)
     command = os.path.join(out, "command")
     spec = _write_spec(folder, "trace", {"data": data_path, "measurements": measurements, "folder": out,
-                                         "extension": so_path, "symbols": symbols, "command": command})
+                                         "inode": inode, "symbols": symbols, "command": command})
     return subprocess.Popen([tools["tracer"], sys.executable, os.path.abspath(__file__), "--worker", "trace", "--spec",
                              spec], env=dict(env, TRACER_COMMAND=command), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
 
 
-def run_workers(tools: dict, folder: str, data_path: str, so_path: str, log) -> dict:
-    """Runs the callgrind and the tracer workers side by side; returns
-    {"callgrind": {label: instructions}, "trace": {label: (total, histogram)}, "notes": [...]}."""
+def run_workers(tools: dict, folder: str, data_path: str, snapshot: str, inode: int, log) -> dict:
+    """Runs the callgrind and the tracer workers side by side on the build
+    `inode` (copied to `snapshot`); returns {"callgrind": {label: instructions},
+    "trace": {label: (total, histogram)}, "notes": [...]}."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.path.dirname(HERE), os.environ.get("PYTHONPATH", "")]))
-    symbols = kernel_symbols(so_path)
-    procs = {"callgrind": start_callgrind(tools, folder, data_path, symbols, env),
-             "trace": start_tracer(tools, folder, data_path, symbols, so_path, env)}
+    symbols = kernel_symbols(snapshot)
+    procs = {"callgrind": start_callgrind(tools, folder, data_path, symbols, inode, env),
+             "trace": start_tracer(tools, folder, data_path, symbols, inode, env)}
     result = {"callgrind": {}, "trace": {}, "notes": []}
     for name, proc in procs.items():
         if proc is None:
@@ -344,7 +370,8 @@ def run_workers(tools: dict, folder: str, data_path: str, so_path: str, log) -> 
         output, _ = proc.communicate()
         log(f"  {name} worker finished (rc {proc.returncode}) after waiting {time.time() - started:.0f} s")
         if proc.returncode != 0:
-            result["notes"].append(f"{name} worker failed (rc {proc.returncode}): {output[-2000:]}")
+            own = "\n".join(line for line in output.splitlines() if not line.startswith("=="))  # not valgrind's
+            result["notes"].append(f"{name} worker failed (rc {proc.returncode}): {own[-2000:].strip()}")
     if procs["callgrind"] is not None:
         result["callgrind"] = parse_callgrind(os.path.join(folder, "callgrind"))
         result_file = os.path.join(folder, "callgrind", "result.json")
@@ -581,21 +608,24 @@ def clock_ghz(probes_path: str | None, samples: int = 5) -> list[float]:
     return result
 
 
-def cpu_seconds(call: Callable, calls: int = 3) -> float:
-    """Median thread CPU time of `calls` calls: unlike wall time, it excludes
-    the time slices other processes take on this shared 2-core machine."""
+def cpu_seconds(call: Callable, calls: int = 3, inner: int = 1) -> float:
+    """Median thread CPU time per call of `calls` samples of `inner` calls:
+    unlike wall time, it excludes the time slices other processes take on
+    this shared 2-core machine."""
     samples = []
     for _ in range(calls):
         start = time.thread_time_ns()
-        call()
-        samples.append(time.thread_time_ns() - start)
+        for _ in range(inner):
+            call()
+        samples.append((time.thread_time_ns() - start) / inner)
     return statistics.median(samples) * 1e-9
 
 
 def time_cases(data: dict, log) -> dict[str, dict[str, list[float]]]:
     """"isa:dtype:case" -> {"wall": [...], "cpu": [...]} in ns per matrix:
     REPEATS blocked_autorange medians (wall) and thread-CPU-time medians,
-    interleaved: repeat r of every case runs before repeat r + 1 of any."""
+    interleaved: repeat r of every case runs before repeat r + 1 of any.
+    Labels ending in "@cached" are the CACHED_N timings."""
     isas = [i for i in ("avx512", "avx2") if i in supported_isas()]
     outs = {dt: torch.empty_like(data[dt]["M"]) for dt in data}
     plan = {}
@@ -605,15 +635,18 @@ def time_cases(data: dict, log) -> dict[str, dict[str, list[float]]]:
                 continue
             for isa in isas if case.kernel and dtype == "float32" else isas[:1]:
                 n = case.time_n or TIME_N
-                call = case.make(data[dtype], n, outs[dtype])
-                plan[f"{isa}:{dtype}:{case.key}"] = (isa, n, call, tbench.Timer(stmt="call()", globals={"call": call},
-                                                                                num_threads=1))
+                plan[f"{isa}:{dtype}:{case.key}"] = (isa, n, case.make(data[dtype], n, outs[dtype]))
+    for key in CACHED_CASES:
+        plan[f"{isas[0]}:float32:{key}@cached"] = (isas[0], CACHED_N,
+                                                    CASE[key].make(data["float32"], CACHED_N, outs["float32"]))
     times = {label: {"wall": [], "cpu": []} for label in plan}
     for r in range(REPEATS):
-        for label, (isa, n, call, timer) in plan.items():
+        for label, (isa, n, call) in plan.items():
+            timer = tbench.Timer(stmt="call()", globals={"call": call}, num_threads=1)
             with forced_isa(isa):
                 times[label]["wall"].append(timer.blocked_autorange(min_run_time=MIN_RUN_TIME).median / n * 1e9)
-                times[label]["cpu"].append(cpu_seconds(call) / n * 1e9)
+                inner = TIME_N // n if label.endswith("@cached") else 1  # samples of ~1e6 matrices
+                times[label]["cpu"].append(cpu_seconds(call, inner=inner) / n * 1e9)
         log(f"  timing repeat {r + 1}/{REPEATS} done")
     return times
 
@@ -781,7 +814,7 @@ def _time_section(rep: Report, top: str, ghz: float | None) -> list[str]:
                   "|---|---|---|---|---|---|---|---|---|---|---|"]
         for label, samples in rep.times.items():
             isa, dt, key = label.split(":")
-            if dt != dtype:
+            if dt != dtype or key.endswith("@cached"):
                 continue
             case = CASE[key]
             wall, cpu = _median(samples["wall"]), _median(samples["cpu"])
@@ -793,6 +826,7 @@ def _time_section(rep: Report, top: str, ghz: float | None) -> list[str]:
                          f"{max(samples['wall']):.2f}) | {cpu:.2f} ({min(samples['cpu']):.2f} - "
                          f"{max(samples['cpu']):.2f}) | {cpu / copy_cpu:.2f} | {_f(svd / cpu if svd else None)} | "
                          f"{moved} | {moved / rate:.2f} | {_f(instr)} | {_f(cycles)} | {_f(ipc, '.2f')} |")
+        lines += _cached_table(rep, top, dtype, ghz)
         fresh, reused = (_median(rep.times.get(f"{top}:{dtype}:{k}", {}).get("cpu"))
                          for k in ("onestep_new", "onestep"))
         if fresh is not None and reused is not None:
@@ -802,6 +836,28 @@ def _time_section(rep: Report, top: str, ghz: float | None) -> list[str]:
                       "system time). The backward allocates its output the same way, which is why its IPC is low: "
                       "kernel-side instructions are not in the count."]
         lines.append("")
+    return lines
+
+
+def _cached_table(rep: Report, top: str, dtype: str, ghz: float | None) -> list[str]:
+    """The CACHED_N timings: the same calls with data resident in L2."""
+    labels = [k for k in rep.times if k.endswith("@cached") and k.split(":")[1] == dtype]
+    copy = _median(rep.times.get(f"{top}:{dtype}:copy@cached", {}).get("cpu"))
+    if not labels or copy is None:
+        return []
+    lines = ["", f"Cache-resident: the same calls on N = {CACHED_N:.0e} (inputs and output, "
+             f"{CACHED_N * 36 * 3 / 2**20:.1f} MiB, stay in L2 across calls), CPU time:", "",
+             "| case | CPU ns/matrix: median (min - max) | x copy_ (cached) | same at N = 1e6 | instr/matrix | "
+             "cycles/matrix | IPC |", "|---|---|---|---|---|---|---|"]
+    for label in labels:
+        key = label.split(":")[2].removesuffix("@cached")
+        cpu = _median(rep.times[label]["cpu"])
+        big = _median(rep.times.get(f"{top}:{dtype}:{key}", {}).get("cpu"))
+        instr = instructions_per_matrix(rep, top, dtype, key)
+        cycles = cpu * ghz if ghz else None
+        lines.append(f"| {CASE[key].title} | {cpu:.2f} ({min(rep.times[label]['cpu']):.2f} - "
+                     f"{max(rep.times[label]['cpu']):.2f}) | {cpu / copy:.2f} | {_f(big, '.2f')} | {_f(instr)} | "
+                     f"{_f(cycles)} | {_f(instr / cycles if instr is not None and cycles else None, '.2f')} |")
     return lines
 
 
@@ -863,8 +919,26 @@ def conclusions(rep: Report, top: str, ghz: float | None) -> list[str]:
     overhead = sum(cls.get(k, 0.0) for k in ("vector spill / reload (stack)", "vector register move",
                                              "scalar and control (integer, branches, calls)", "mask-register ops"))
     ipc_one = i_one / (one * ghz)
-    budget = 1.5 * copy * ghz * ipc_one
+    cached = {k: cpu(f"{k}@cached") for k in ("onestep", "conv_warm", "cold_uniform")}
+    one_c = cached["onestep"] if cached["onestep"] is not None else one
+    ipc_c = i_one / (one_c * ghz)
+    budget = 1.5 * copy * ghz * ipc_c
     warm, uniform = stats[("warm", "warm")], stats[("uniform", "cold")]
+    if one_c > 1.5 * copy:
+        verdict = "bound by instructions: the computation alone, without any memory traffic, exceeds the target"
+    else:
+        verdict = ("bound by instructions and by memory time they do not hide: the computation alone is just "
+                   "under the target in this run")
+    if 1.5 * copy < add3:
+        floor_text = "the target is below the call's own memory floor"
+    else:
+        floor_text = (f"the target is {1.5 * copy / add3:.2f}x the call's own memory floor, so the computation would "
+                      f"have to hide {'almost entirely ' if 1.5 * copy < 1.3 * add3 else ''}under its memory traffic")
+    if ports / 2 / ghz > 1.5 * copy:
+        port_text = "these alone exceed the target, before any load, store, spill or branch"
+    else:
+        port_text = (f"meeting it would need near-peak use of both ports and almost none of the other "
+                     f"{i_one - ports:.1f} instructions, or dropping work the exactness requires")
     lines = ["## 4. Bounds of the missed targets (float32, 1 thread, N = 1e6, CPU time)", "",
              f"Times are this run's CPU-time medians (wall-clock medians: copy_ {wall('copy'):.2f}, 1-step warm "
              f"{wall('onestep'):.2f}, converged warm {wall('conv_warm'):.2f}, converged cold uniform "
@@ -873,25 +947,27 @@ def conclusions(rep: Report, top: str, ghz: float | None) -> list[str]:
              f"time ratios to copy_ move between runs; instruction and step counts do not.", ""]
     lines += [
         f"**One-step warm start <= 1.5x copy_** (target {1.5 * copy:.2f} ns, measured {one:.2f} ns = "
-        f"{one / copy:.2f}x copy_): bound by instructions, not bytes. The call moves 108 B/matrix, 1.5x copy_'s "
-        f"72 B; a pure pass with that traffic (`add(M, init, out=)`) takes {add3:.2f} ns = {add3 / copy:.2f}x "
-        f"copy_, so the target is {1.5 * copy / add3:.2f}x the call's own memory floor: the computation has to hide "
-        f"almost entirely under the memory traffic. The kernel "
-        f"executes {i_one:.1f} instructions/matrix in {one * ghz:.0f} cycles (IPC {ipc_one:.2f} at {ghz:.2f} GHz), "
-        f"{one / add3:.1f}x that floor; at this IPC the target allows {budget:.0f} instructions/matrix. Of the "
-        f"{i_one:.1f}: AoS<->SoA transposes {stage.get('AoS<->SoA transpose', 0.0):.1f}, the Cayley step "
-        f"{step_stages:.1f}, warm-start validation + normalisation + Newton-Schulz clean-up (what makes the result "
-        f"exact and safe for any input) {exactness:.1f}, the rest driver and finish; by class, FP arithmetic "
+        f"{one / copy:.2f}x copy_): {verdict}. The call moves 108 B/matrix, 1.5x copy_'s "
+        f"72 B, and the same traffic without computation (`add(M, init, out=)`) takes {add3:.2f} ns = "
+        f"{add3 / copy:.2f}x copy_: {floor_text}. The computation alone, with "
+        f"the data resident in L2, takes {one_c:.2f} ns = {one_c / (1.5 * copy):.2f}x the target: "
+        f"{i_one:.1f} instructions/matrix in {one_c * ghz:.0f} cycles (IPC {ipc_c:.2f} at {ghz:.2f} GHz). At "
+        f"N = 1e6 memory stalls add {one - one_c:.2f} ns (IPC {ipc_one:.2f}): computation and memory traffic overlap "
+        f"only partly (fully overlapped, the call would take max({one_c:.2f}, {add3:.2f}) ns). At the in-cache IPC "
+        f"the target allows {budget:.0f} instructions/matrix. Of the {i_one:.1f}: AoS<->SoA transposes "
+        f"{stage.get('AoS<->SoA transpose', 0.0):.1f}, the Cayley step {step_stages:.1f}, warm-start validation + "
+        f"normalisation + Newton-Schulz clean-up (what makes the result exact and safe for any input) "
+        f"{exactness:.1f}, the rest driver and finish; by class, FP arithmetic "
         f"{cls.get('FP arithmetic / logic', 0.0):.1f}, spills/reloads, register moves, mask and scalar "
         f"instructions {overhead:.1f}. The vector FP, shuffle and compare instructions ({ports:.1f}/matrix) can "
         f"only issue on the two 512-bit vector ports of this Intel core (0 and 5), so they alone need >= "
         f"{ports / 2:.1f} cycles = {ports / 2 / ghz:.2f} ns (a port-model estimate, not measured) against a target "
-        f"of {1.5 * copy:.2f} ns: meeting it would need near-peak use of both ports and almost none of the other "
-        f"{i_one - ports:.1f} instructions, or dropping work the exactness requires.", ""]
+        f"of {1.5 * copy:.2f} ns: {port_text}.", ""]
     fixed = one - step_ns
     lines += [
-        f"**Converged fit on warm data <= 10 ns** (measured {cw:.2f} ns, {i_cw:.1f} instructions/matrix, IPC "
-        f"{i_cw / (cw * ghz):.2f}): bound by the fixed per-call work plus the steps SIMD blocks execute. A matrix "
+        f"**Converged fit on warm data <= 10 ns** (measured {cw:.2f} ns, {_f(cached['conv_warm'], '.2f')} ns with "
+        f"the data in L2; {i_cw:.1f} instructions/matrix, IPC {i_cw / (cw * ghz):.2f}): "
+        f"bound by the fixed per-call work plus the steps SIMD blocks execute. A matrix "
         f"needs {warm['mean']:.2f} steps on average, but a {warm['width']}-lane block steps until its slowest lane "
         f"has converged: {warm['block_steps']:.2f} steps per matrix are executed "
         f"({warm['mean'] / warm['block_steps']:.0%} of the lane steps are useful; section 3). A step costs "
@@ -906,8 +982,9 @@ def conclusions(rep: Report, top: str, ghz: float | None) -> list[str]:
     cold_fixed = c1 - step_ns
     lines += [
         f"**Converged cold start on uniform >= 100x SVD** (torch.linalg.svd {svd:.0f} ns, target <= "
-        f"{svd / 100:.2f} ns; measured {cu:.2f} ns = {svd / cu:.0f}x, {i_cu:.1f} instructions/matrix, IPC "
-        f"{i_cu / (cu * ghz):.2f}): bound by the number of steps. A cold start needs {uniform['mean']:.2f} steps, "
+        f"{svd / 100:.2f} ns; measured {cu:.2f} ns = {svd / cu:.0f}x, {_f(cached['cold_uniform'], '.2f')} ns with "
+        f"the data in L2; {i_cu:.1f} instructions/matrix, IPC {i_cu / (cu * ghz):.2f}): "
+        f"bound by the number of steps. A cold start needs {uniform['mean']:.2f} steps, "
         f"blocks execute {uniform['block_steps']:.2f} per matrix ({uniform['mean'] / uniform['block_steps']:.0%} "
         f"useful); max_iter=1 costs {c1:.2f} ns, i.e. {cold_fixed:.2f} ns besides its step (load, normalisation, "
         f"cold start, clean-up, store). Fixed + executed steps = {cold_fixed + uniform['block_steps'] * step_ns:.2f} "
@@ -1001,11 +1078,17 @@ def main() -> None:
     def log(message):
         print(f"[{time.time() - started:6.1f} s] {message}", flush=True)
 
-    so_path = extension_path()
-    so_stat = os.stat(so_path)
     torch.set_num_threads(1)
     info = machine()
+    mapped = mapped_extension()
+    notes, counts = [], {"callgrind": {}, "trace": {}}
+    breakdowns, rep_invocations = {}, None
     with tempfile.TemporaryDirectory(prefix="torchrot_bounds_") as folder:
+        snapshot = os.path.join(folder, "extension.so")
+        have_snapshot = snapshot_extension(mapped, snapshot)
+        if have_snapshot:
+            with open(snapshot, "rb") as f:
+                info["extension build (sha256)"] = hashlib.sha256(f.read()).hexdigest()[:16]
         tools = build_tools(folder)
         log("making data")
         data = {dt: make_data(TIME_N, DTYPES[dt]) for dt in DTYPES}
@@ -1020,16 +1103,15 @@ def main() -> None:
         log("iteration statistics")
         iterations = {dt: iteration_stats(DTYPES[dt], TIME_N) for dt in DTYPES}
         slices = slice_steps(worker_data)
-        log("instruction counts (callgrind and tracer workers, side by side)")
-        counts = run_workers(tools, folder, data_path, so_path, log)
-    notes = counts.pop("notes")
-    breakdowns, rep_invocations = {}, None
-    if counts["trace"]:
-        log("attributing instructions")
-        breakdowns, rep_invocations = attribute(counts["trace"], so_path)
-    after = os.stat(so_path)
-    if (after.st_mtime, after.st_size) != (so_stat.st_mtime, so_stat.st_size):
-        notes.append("the extension was replaced during this run: rerun before trusting the counts")
+        if have_snapshot:
+            log("instruction counts (callgrind and tracer workers, side by side)")
+            counts = run_workers(tools, folder, data_path, snapshot, mapped["inode"], log)
+            notes += counts.pop("notes")
+            if counts["trace"]:
+                log("attributing instructions")
+                breakdowns, rep_invocations = attribute(counts["trace"], snapshot)
+        else:
+            notes.append("the extension was replaced before it could be copied: no instruction counts; rerun")
     info["load average at end"] = " ".join(f"{x:.2f}" for x in os.getloadavg())
     info["run time"] = f"{time.time() - started:.0f} s"
     report = Report(info, ghz, times, counts, breakdowns, iterations, slices, rep_invocations, notes)

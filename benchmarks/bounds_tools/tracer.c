@@ -1,8 +1,22 @@
 /* Exact dynamic instruction counts of one function call, by ptrace single-stepping.
- * Usage: tracer PROGRAM ARGS...   The traced program arms a measurement by writing
- * "ENTRY LO HI BASE OUTFILE" (hex addresses, then a path) to $TRACER_COMMAND and raising
- * SIGUSR1 on itself; the next call of ENTRY is stepped to its return, every instruction
- * counted, and those with LO <= rip < HI histogrammed by rip - BASE into OUTFILE. */
+ *
+ * Used by benchmarks/bounds.py for the AVX-512 kernels: valgrind cannot run
+ * AVX-512 code and perf has no hardware counters in the virtual machine the
+ * benchmarks run on, but the CPU's trap flag works anywhere. ~1e4-1e5
+ * instructions per second, so only small batches are stepped.
+ *
+ * Usage: TRACER_COMMAND=FILE tracer PROGRAM ARGS...
+ * Runs PROGRAM under ptrace. The program arms a measurement by writing
+ * "ENTRY LO HI BASE OUTFILE" (hex addresses, then a path) to FILE and raising
+ * SIGUSR1 on itself (the tracer takes the signal; it is never delivered). The
+ * next call of ENTRY is then stepped from its first instruction to its return,
+ * counting every instruction executed by the calling thread (callees, libc and
+ * the PLT included; kernel-mode work such as page faults is not an
+ * instruction of the program). OUTFILE gets "total N", "outside N" (outside
+ * LO <= rip < HI) and one "OFFSET COUNT" line per executed address in range,
+ * OFFSET = rip - BASE (the offset objdump and addr2line use for a shared
+ * library). A rep-prefixed string instruction counts once per iteration, as
+ * the trap flag traps after each. */
 #include <errno.h>
 #include <signal.h>
 #include <stdint.h>
