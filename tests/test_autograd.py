@@ -424,3 +424,17 @@ def test_backward_op_argument_errors():
         op.fit_rotation_backward(G, R.view(4, 9), M, 1e-6)
     with pytest.raises(RuntimeError, match="R must be float32, float64"):
         op.fit_rotation_backward(G.long(), R.long(), M.long(), 1e-6)
+
+
+def test_second_derivatives_raise_instead_of_zeros():
+    M = make_matrices("gaussian", 3, seed=1).requires_grad_()
+    (g,) = torch.autograd.grad(torchrot.fit_rotation(M).sum(), M, create_graph=True)
+    with pytest.raises(RuntimeError, match="second derivatives are not implemented"):
+        g.sum().backward()
+    (g,) = torch.autograd.grad(op.fit_rotation(M).sum(), M, create_graph=True)
+    with pytest.raises(RuntimeError, match="second derivatives are not implemented"):
+        g.sum().backward()
+    from torch.func import hessian
+
+    with pytest.raises(RuntimeError, match="second derivatives are not implemented"):
+        hessian(lambda m: torchrot.fit_rotation(m).sum())(M[0].detach())

@@ -46,6 +46,14 @@ def _gradient_for(M: torch.Tensor, grad_M: torch.Tensor) -> torch.Tensor:
     return grad_M if grad_M.shape == M.shape else grad_M.sum_to_size(M.shape)
 
 
+def _no_second_derivative(ctx, grad):
+    raise RuntimeError(
+        "torchrot.fit_rotation: second derivatives are not implemented (the derivative operator "
+        "fit_rotation_backward is not differentiable); a first-order gradient with create_graph=True "
+        "is fine, differentiating it again is not"
+    )
+
+
 def _setup_context(ctx, inputs, output):
     """Saves R and M (and the damping) of fit_rotation(M, init, max_iter, variant, gradient_eps)."""
     ctx.save_for_backward(output, inputs[0])
@@ -59,6 +67,25 @@ def _backward(ctx, grad_R):
     if ctx.needs_input_grad[0]:
         grad_M = _gradient_for(M, rotation_tangent(grad_R, R, M, ctx.gradient_eps))
     return grad_M, None, None, None, None
+
+
+class _TangentFunction(torch.autograd.Function):
+    """rotation_tangent, refusing to be differentiated in either mode, so that
+    second derivatives (e.g. torch.func.hessian, forward over reverse) raise
+    instead of silently coming out as zeros."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(X, R, M, gradient_eps):
+        return rotation_tangent(X, R, M, gradient_eps)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        pass
+
+    backward = staticmethod(lambda ctx, grad: _no_second_derivative(ctx, grad))
+    jvp = staticmethod(lambda ctx, *tangents: _no_second_derivative(ctx, tangents))
 
 
 class FitRotationFunction(torch.autograd.Function):
@@ -79,7 +106,13 @@ class FitRotationFunction(torch.autograd.Function):
         _setup_context(ctx, inputs, output)
         ctx.save_for_forward(output, inputs[0])
 
-    backward = staticmethod(_backward)
+    @staticmethod
+    def backward(ctx, grad_R):
+        R, M = ctx.saved_tensors
+        grad_M = None
+        if ctx.needs_input_grad[0]:
+            grad_M = _gradient_for(M, _TangentFunction.apply(grad_R, R, M, ctx.gradient_eps))
+        return grad_M, None, None, None, None
 
     @staticmethod
     def jvp(ctx, dM, _dinit, _max_iter, _variant, _gradient_eps):
@@ -92,6 +125,12 @@ class FitRotationFunction(torch.autograd.Function):
 # ---- autograd of the operator itself (torch.ops.torchrot.fit_rotation) ----
 
 torch.library.register_autograd("torchrot::fit_rotation", _backward, setup_context=_setup_context)
+
+
+# Differentiating the derivative raises instead of silently returning zeros.
+torch.library.register_autograd(
+    "torchrot::fit_rotation_backward", _no_second_derivative, setup_context=lambda ctx, inputs, output: None
+)
 
 
 # ---- vmap rules: every operator takes any batch shape, so a vmapped

@@ -98,6 +98,7 @@ def fit_rotation(
         overlapping itself or partially overlapping M or init, or given while
         M requires grad; unknown variant; max_iter < 1; gradient_eps < 0.
     """
+    _check_tensor(M)
     _check_max_iter(max_iter)
     if gradient_eps is not GRADIENT_EPS:
         check_gradient_eps(gradient_eps)
@@ -124,6 +125,13 @@ def fit_rotation(
         return torch.ops.torchrot.fit_rotation.default(M, init, max_iter, variant, gradient_eps)
 
 
+def _check_tensor(M) -> None:
+    # Without a tensor argument the dispatcher cannot pick a kernel and says
+    # so at length; name the argument instead.
+    if not isinstance(M, torch.Tensor):
+        raise TypeError(f"torchrot.fit_rotation: M must be a torch.Tensor, got {type(M).__name__}")
+
+
 def _check_max_iter(max_iter) -> None:
     if max_iter is not None and type(max_iter) is not int:  # bool is an int to the op's schema
         raise TypeError(f"torchrot.fit_rotation: max_iter must be None or an int >= 1, got {max_iter!r}")
@@ -133,8 +141,6 @@ def _needs_derivative(M: torch.Tensor) -> bool:
     """Whether a call must record derivatives: reverse mode (also under
     torch.func.grad, whose tensors require grad) or forward mode (a dual
     level is open, also under torch.func.jvp)."""
-    if not isinstance(M, torch.Tensor):
-        return False  # the operator raises a clear error
     return (torch.is_grad_enabled() and M.requires_grad) or forward_ad._current_level >= 0
 
 
@@ -171,6 +177,7 @@ def fit_rotation_info(
 
     Raises: the errors of :func:`fit_rotation`.
     """
+    _check_tensor(M)
     _check_max_iter(max_iter)
     return FitInfo(*torch.ops.torchrot.fit_rotation_info(M, init, max_iter, variant))
 
