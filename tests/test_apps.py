@@ -229,6 +229,16 @@ def test_dataset_cache_second_request_loads(tmp_path, monkeypatch):
         datasets.dataset_folder("cloth", None, cache)
 
 
+def test_dataset_from_a_user_surface(tmp_path):
+    mesh = capsule(4)
+    path = str(tmp_path / "bar.off")
+    igl.writeOFF(path, mesh.V, mesh.F)
+    config = datasets.ArapDataConfig(mesh_path=path, frames=2, iterations=2, max_per_step=None)
+    rec = datasets.load_dataset("arap", config, str(tmp_path / "cache"), progress=False)
+    assert rec.manifest["mesh"] == "bar" and rec.manifest["config"]["vertices"] == len(mesh.V)
+    assert len(rec) == 2 * 2 * len(mesh.V)
+
+
 def test_warm_start_pairs_draw_and_repeat(tmp_path):
     cache = str(tmp_path / "cache")
     M, init = datasets.warm_start_pairs("elasticity", 500, dtype=torch.float32, config=TINY_ELASTICITY, cache=cache)

@@ -42,6 +42,8 @@ def _apps(args: argparse.Namespace) -> None:
     overrides = {"table_n": args.n, "dtypes": tuple(DTYPES[d] for d in args.dtype) if args.dtype else None,
                  "repeats": args.repeats}
     plan = dataclasses.replace(plan, **{k: v for k, v in overrides.items() if v is not None})
+    if args.mesh:
+        plan = dataclasses.replace(plan, arap=dataclasses.replace(plan.arap, mesh_path=args.mesh))
     print(f"\n# Applications: ARAP and co-rotational elasticity data (cache: "
           f"{reproduce.datasets.cache_root(args.cache)})")
     results, rows = reproduce.run_apps(plan, args.cache)
@@ -106,6 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--no-apps", action="store_true",
                        help="skip the applications part (ARAP/elasticity data, Tables 1-2, Figs. 5-7)")
     bench.add_argument("--apps-only", action="store_true", help="run only the applications part")
+    bench.add_argument("--mesh", help="an OBJ/OFF/PLY/STL surface for the ARAP data set and experiments "
+                                      "(default: the built-in 57,346-vertex capsule)")
     bench.add_argument("--cache", help="folder of the recorded data sets (default: $TORCHROT_CACHE, else "
                                        "~/.cache/torchrot); a second run loads them from there")
     args = parser.parse_args(argv)

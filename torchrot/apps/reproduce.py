@@ -31,7 +31,9 @@ class AppsPlan:
 
     arap, elasticity: the recorded data sets' configurations.
     table_n, dtypes, repeats, min_run_time: the Tables 1-2 benchmark
-        (N matrices drawn from each recording; 1 thread, as the paper).
+        (N matrices drawn from each recording; 1 thread, as the paper);
+        comparison_n: the paper's comparison methods (batched PyTorch, slow,
+        ns/matrix flat in N) run on the first comparison_n of them.
     timing_frames, timing_iterations: ARAP Fig. 6 frames x iterations;
     elasticity_timing_frames: time steps timed for elasticity's Fig. 6.
     trace_iterations, trace_reference_iterations: ARAP Fig. 7;
@@ -50,6 +52,7 @@ class AppsPlan:
     repeats: int = 5
     min_run_time: float = 0.1
     all_isas: bool = False
+    comparison_n: int | None = 20_000
     timing_frames: int = 6
     timing_iterations: int = 4
     elasticity_timing_frames: int = 8
@@ -65,7 +68,8 @@ class AppsPlan:
 QUICK = AppsPlan()
 FULL = AppsPlan(arap=datasets.ArapDataConfig(frames=60, max_per_step=6_000),  # 1.08M matrices
                 elasticity=datasets.ElasticityDataConfig(frames=90, max_per_step=2_400),  # 1.08M matrices
-                table_n=1_000_000, dtypes=(torch.float32, torch.float64), all_isas=True, timing_frames=10,
+                table_n=1_000_000, dtypes=(torch.float32, torch.float64), all_isas=True, comparison_n=100_000,
+                timing_frames=10,
                 elasticity_timing_frames=16, trace_iterations=200, trace_reference_iterations=800,
                 elasticity_trace_iterations=60, validation_resolution=24, validation_iterations=3000)
 
@@ -82,7 +86,7 @@ def run_tables(plan: AppsPlan, cache: str | None, log: Callable[[str], None]) ->
 
     isas = benchmark.supported_isas()
     kernels = ["scalar", isas[-1]] if not plan.all_isas else isas
-    methods = benchmark.all_methods(kernels, ("newton", "conservative"))
+    methods = benchmark.all_methods(kernels, ("newton", "conservative"), comparison_n=plan.comparison_n)
     rows = []
     with datasets.active({"arap": plan.arap, "elasticity": plan.elasticity}, cache):
         for dtype in plan.dtypes:
@@ -96,7 +100,8 @@ def run_apps(plan: AppsPlan = QUICK, cache: str | None = None, tables: bool = Tr
              log: Callable[[str], None] = print, progress: bool = True) -> tuple[dict, list]:
     """Runs the applications part; returns (results, benchmark rows)."""
     clock = time.perf_counter()
-    results: dict = {"plan": _plain_plan(plan), "datasets": {}, "statistics": {}}
+    results: dict = {"plan": _plain_plan(plan), "load_average_at_start": list(os.getloadavg()),
+                     "datasets": {}, "statistics": {}}
     for name, config in (("arap", plan.arap), ("elasticity", plan.elasticity)):
         log(f"data set {name}: {datasets.dataset_folder(name, config, cache)}")
         recording = datasets.load_dataset(name, config, cache, progress)
@@ -133,13 +138,24 @@ def run_apps(plan: AppsPlan = QUICK, cache: str | None = None, tables: bool = Tr
                                                                      threads=plan.threads)
     results["targets"] = report.targets(results)
     results["seconds"] = time.perf_counter() - clock
+    results["load_average_at_end"] = list(os.getloadavg())
     return results, rows
 
 
 def _plain_plan(plan: AppsPlan) -> dict:
     out = dataclasses.asdict(plan)
-    out["dtypes"] = [str(d).replace("torch.", "") for d in plan.dtypes]
+    for key in ("dtypes", "local_dtypes"):
+        out[key] = [str(d).replace("torch.", "") for d in getattr(plan, key)]
     return out
+
+
+def _json_default(x):
+    """JSON for what json does not know: dtypes and NumPy scalars/arrays."""
+    if isinstance(x, torch.dtype):
+        return str(x).replace("torch.", "")
+    if hasattr(x, "tolist"):
+        return x.tolist()
+    raise TypeError(f"not JSON serializable: {type(x).__name__}")
 
 
 def markdown(results: dict, rows: list, machine: dict | None = None) -> str:
@@ -147,6 +163,8 @@ def markdown(results: dict, rows: list, machine: dict | None = None) -> str:
     parts = ["# torchrot applications: the paper's tables and figures on built-in solver data", ""]
     if machine:
         parts += [f"Machine: {machine}", ""]
+    parts += [f"Load average (1, 5, 15 min) at the start: {results['load_average_at_start']}, at the end: "
+              f"{results['load_average_at_end']} (other processes share this machine: timings are medians).", ""]
     parts += ["## Recorded data (Fig. 5)", "", report.statistics_table(results["statistics"]), "",
               "![Fig. 5](fig5_data.png)", ""]
     dtypes = sorted({r["dtype"] if isinstance(r, dict) else r.dtype for r in rows})
@@ -197,7 +215,8 @@ def write_apps(results: dict, rows: list, folder: str, machine: dict | None = No
              ("apps.json", "apps.md", "fig5_data.png", "fig6_local_global.png", "fig7_energy_time.png")}
     with open(paths["apps.json"], "w") as f:
         json.dump({"machine": machine, **results,
-                   "rows": [r if isinstance(r, dict) else dataclasses.asdict(r) for r in rows]}, f, indent=1)
+                   "rows": [r if isinstance(r, dict) else dataclasses.asdict(r) for r in rows]}, f, indent=1,
+                  default=_json_default)
     with open(paths["apps.md"], "w") as f:
         f.write(markdown(results, rows, machine))
     try:
@@ -208,3 +227,18 @@ def write_apps(results: dict, rows: list, folder: str, machine: dict | None = No
         print("matplotlib is not installed (pip install 'torchrot[bench]'): no figures written")
         return [paths["apps.json"], paths["apps.md"]]
     return list(paths.values())
+
+
+def rewrite(folder: str) -> list[str]:
+    """Writes apps.md and the PNGs again from ``folder``/apps.json (no timing is re-run)."""
+    with open(os.path.join(folder, "apps.json")) as f:
+        saved = json.load(f)
+    machine, rows = saved.pop("machine", None), saved.pop("rows", [])
+    return write_apps(saved, rows, folder, machine)
+
+
+if __name__ == "__main__":
+    import sys
+
+    for path in rewrite(sys.argv[1] if len(sys.argv) > 1 else "results"):
+        print(f"wrote {path}")
