@@ -19,7 +19,7 @@ from torchrot.apps.elasticity import ElasticitySolver  # noqa: E402
 from torchrot.apps.local_step import RotationFit, keep_better  # noqa: E402
 from torchrot.apps.meshes import capsule, load_surface, octopus  # noqa: E402
 from torchrot.apps.recording import Recorder, load_recording  # noqa: E402
-from torchrot.apps.sessions import DropScript, HandleScript, run_arap_session, run_elasticity_session  # noqa: E402
+from torchrot.apps.sessions import HandleScript, run_arap_session  # noqa: E402
 from torchrot.apps.statistics import recording_statistics, rotation_angle  # noqa: E402
 from torchrot.testing import random_rotations  # noqa: E402
 

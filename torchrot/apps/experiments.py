@@ -141,13 +141,13 @@ def arap_energy_trace(mesh: Mesh, script: HandleScript, start_frame: int = 10, j
                 after_global.append(solver.energy(state.P, Rt))
             result["fits"][fit] = _trace(solver.timer, after_local, after_global, result["start_energy"])
             result["fits"][fit]["final_optimal_energy"] = solver.energy(state.P)
-            if fit == "converged":
-                last = state
+            if fit == "converged" or "converged" not in fits:
+                reference = state
         solver.fit, solver.timer = RotationFit("converged"), PhaseTimer(enabled=False)
-        state = last
+        state = reference
         for _ in range(reference_iterations):
             state = solver.iterate(state, targets)
-        result["reference_energy"] = solver.energy(state.P)
+        result["reference_energy"] = solver.energy(state.P)  # the converged fit's, continued
         result["reference_iterations"] = iterations + reference_iterations
     return result
 
