@@ -138,7 +138,7 @@ def test_kugelstadt_and_torchrot_newton_differ_at_third_order():
     assert difference[ok].max() > 1e-3
 
 
-def test_kugelstadt_more_steps_converge_on_warm_data(dtype):
+def test_kugelstadt_more_steps_converge_from_60_degrees(dtype):
     M, init = _data("rot60", dtype)
     one = rotation_errors(methods.kugelstadt(M, init), M)["distance"]
     five = rotation_errors(methods.kugelstadt(M, init, max_iter=5), M)["distance"]
