@@ -18,16 +18,6 @@ from torchrot.nn import RigidRegistration, RotationFit
 from torchrot.testing import make_matrices, random_rotations
 
 
-def require_fit_rotation_autograd():
-    """Skip (at test time) while torchrot.fit_rotation has no autograd: its output
-    then has no grad_fn, or PyTorch's not-implemented fallback
-    (WarnNotImplemented, which yields no gradient)."""
-    M = torch.randn(3, 3, dtype=torch.float64).requires_grad_()
-    grad_fn = torchrot.fit_rotation(M).grad_fn
-    if grad_fn is None or "NotImplemented" in grad_fn.name():
-        pytest.skip("torchrot.fit_rotation has no autograd yet (no backward registered)")
-
-
 def gaussian(batch, seed=0, dtype=torch.float64):
     return make_matrices("gaussian", math.prod(batch), seed, dtype).reshape(*batch, 3, 3)
 
@@ -192,7 +182,6 @@ def test_gradient_matches_svd_autograd(data):
     matrices with well-separated singular values (where the SVD gradient exists)
     and sigma_i + sigma_j well away from 0 (a rotation times a stretch of
     condition number 10)."""
-    require_fit_rotation_autograd()
     M = make_matrices(data, 64, seed=7)
     G = torch.randn(64, 3, 3, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
 
@@ -211,7 +200,6 @@ def test_gradient_matches_svd_autograd(data):
 
 
 def test_gradient_float32_close_to_float64():
-    require_fit_rotation_autograd()
     M = make_matrices("rot60", 64, seed=9)
     G = torch.randn(64, 3, 3, generator=torch.Generator().manual_seed(10), dtype=torch.float64)
     grads = []
@@ -283,7 +271,6 @@ def test_ddp_forward(ddp_results):
 
 
 def test_ddp_gradients_are_averaged(ddp_results):
-    require_fit_rotation_autograd()
     local = []
     for rank in range(WORLD):
         model = _make_model()

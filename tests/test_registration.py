@@ -58,16 +58,6 @@ def assert_close(actual, expected, tol, what):
     assert err <= tol, f"{what}: max error {err:.3g} > {tol:g}"
 
 
-def require_fit_rotation_autograd():
-    """Skip (at test time) while torchrot.fit_rotation has no autograd: its output
-    then has no grad_fn, or PyTorch's not-implemented fallback
-    (WarnNotImplemented, which yields no gradient)."""
-    M = torch.randn(3, 3, dtype=torch.float64).requires_grad_()
-    grad_fn = torchrot.fit_rotation(M).grad_fn
-    if grad_fn is None or "NotImplemented" in grad_fn.name():
-        pytest.skip("torchrot.fit_rotation has no autograd yet (no backward registered)")
-
-
 # ---------------------------------------------------------------------------
 # Values
 # ---------------------------------------------------------------------------
@@ -327,7 +317,6 @@ def test_nan_stays_in_its_problem():
 
 @pytest.mark.parametrize("scale", [False, True])
 def test_gradcheck(scale):
-    require_fit_rotation_autograd()
     x, y, _ = make_problem((2,), n=6, seed=18, noise=0.3)
     w = torch.rand(2, 6, generator=torch.Generator().manual_seed(19), dtype=torch.float64) + 0.5
     inputs = tuple(t.clone().requires_grad_() for t in (x, y, w))
@@ -340,7 +329,6 @@ def test_gradcheck(scale):
 
 @pytest.mark.parametrize("scale", [False, True])
 def test_gradients_match_svd_reference(scale):
-    require_fit_rotation_autograd()
     x, y, _ = make_problem((16,), n=20, seed=20, noise=0.5)
     w = torch.rand(16, 20, generator=torch.Generator().manual_seed(21), dtype=torch.float64) + 0.1
     gen = torch.Generator().manual_seed(22)
@@ -362,7 +350,6 @@ def test_gradients_match_svd_reference(scale):
 def test_torch_func_vmap_and_grad():
     """vmap over problems equals the batched call; func.grad equals autograd
     (the value checks are skipped inside the transforms)."""
-    require_fit_rotation_autograd()
     x, y, _ = make_problem((4,), n=10, seed=23, noise=0.3)
     w = torch.rand(4, 10, generator=torch.Generator().manual_seed(24), dtype=torch.float64) + 0.1
 
