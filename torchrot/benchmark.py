@@ -143,7 +143,7 @@ def paper_methods(sample_n: int | None = None) -> list[Method]:
     PyTorch, same convention. Fixed-step warm starts only run on warm data, as
     torchrot's one-step rows; converged modes report their mean steps. ``sample_n``:
     run them on the first sample_n matrices of each data set only (a moderate N keeps
-    the quick plan quick; they cost 0.5-5 us per matrix)."""
+    the quick plan quick; they cost 0.5-5 us per matrix). They run with 1 thread only."""
     methods = [
         Method("Horn 1987 (eigh of 4x4 K)", lambda M, init, out: paper.horn(M), PAPER, max_n=SLOW_MAX_N),
         Method("Mueller 2016, 1 step from init", lambda M, init, out: paper.mueller(M, init, max_iter=1), PAPER,
@@ -165,8 +165,11 @@ def paper_methods(sample_n: int | None = None) -> list[Method]:
         Method("Kugelstadt 2018, 1 Newton step from init", lambda M, init, out: paper.kugelstadt(M, init), PAPER,
                warm_only=True, max_n=SLOW_MAX_N),
     ]
-    if sample_n is not None:
-        for method in methods:
+    for method in methods:
+        # One thread: their cost is thousands of small batched tensor ops, which a
+        # second thread only slows down (measured: Higham 1.3 -> 97 us per matrix).
+        method.max_threads = 1
+        if sample_n is not None:
             method.sample_n = sample_n if method.sample_n is None else min(sample_n, method.sample_n)
     return methods
 
