@@ -88,6 +88,8 @@ CASES = {
                              r"rotation_svd: M.*\(\.\.\., 3, 3\)"),
     "rotation_svd-M-ndarray": (lambda: torchrot.rotation_svd(np.eye(3)), TypeError, r"rotation_svd: M.*Tensor"),
 }
+
+
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_bad_argument_raises_naming_it(case):
     call, exception, pattern = CASES[case]
