@@ -16,7 +16,8 @@ Properties, for float32 and float64, at every instruction set the CPU has:
   tangent, both ``torch.ops.torchrot.fit_rotation_backward``): finite for
   every matrix whose M, warm start and incoming gradient are finite, for any
   ``gradient_eps`` in GRADIENT_EPS_VALUES (0 = undamped included); NaN/Inf
-  only where an input had NaN/Inf; bit-identical at every kernel.
+  only where an input had NaN/Inf; bit-identical at every kernel (but for
+  the sign of NaN, for NaN/Inf input).
 
 Inputs mix hypothesis's own "nasty" floats (signed zeros, subnormals, the
 largest finite values), matrices scaled by 2^e over the whole exponent range,
@@ -46,7 +47,7 @@ from hypothesis import strategies as st
 
 import torchrot
 from torchrot.reference import quaternion_rotation, rotation_svd
-from torchrot.testing import CRITERIA, DISTRIBUTIONS, make_matrices, random_rotations
+from torchrot.testing import CRITERIA, DISTRIBUTIONS, random_rotations
 
 DTYPES = (torch.float32, torch.float64)
 VARIANTS = ("newton", "conservative", "gershgorin")

@@ -82,7 +82,6 @@ def test_concurrent_calls_and_thread_count_changes(restore_threads):
     torch.set_num_threads(1)
     expected = {name: fn() for name, fn in calls}
     failures, errors = [], []
-    done = threading.Event()
 
     def worker(seed: int):
         order = [calls[(seed + 5 * i) % len(calls)] for i in range(6 * len(calls))]
@@ -102,7 +101,6 @@ def test_concurrent_calls_and_thread_count_changes(restore_threads):
         switches += 1
         for t in workers:
             t.join(timeout=0.005)
-    done.set()
     assert not errors, errors
     assert not failures, f"{len(failures)} results differ: {failures[:10]}"
     assert switches >= 3, "the thread count never changed during the run"
