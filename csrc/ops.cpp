@@ -32,12 +32,25 @@ bool is_supported_dtype(at::ScalarType t) {
   return t == at::kFloat || t == at::kDouble || t == at::kHalf || t == at::kBFloat16;
 }
 
-void check_matrix_arg(const at::Tensor& t, const char* name) {
-  TORCH_CHECK(t.defined(), kOpName, ": ", name, " must be a tensor of shape (..., 3, 3), got None");
-  TORCH_CHECK(t.dim() >= 2 && t.size(-1) == 3 && t.size(-2) == 3, kOpName, ": ", name,
+void check_matrix_shape(const at::Tensor& t, const char* name, const char* op = kOpName) {
+  TORCH_CHECK(t.defined(), op, ": ", name, " must be a tensor of shape (..., 3, 3), got None");
+  TORCH_CHECK(t.dim() >= 2 && t.size(-1) == 3 && t.size(-2) == 3, op, ": ", name,
               " must have shape (..., 3, 3), got ", t.sizes());
-  TORCH_CHECK(is_supported_dtype(t.scalar_type()), kOpName, ": ", name,
+}
+
+void check_matrix_arg(const at::Tensor& t, const char* name, const char* op = kOpName) {
+  check_matrix_shape(t, name, op);
+  TORCH_CHECK(is_supported_dtype(t.scalar_type()), op, ": ", name,
               " must be float32, float64, float16 or bfloat16, got ", t.scalar_type());
+}
+
+// `t` (argument `name`) must be on `ref`'s device and have its dtype.
+void check_like(const at::Tensor& t, const char* name, const at::Tensor& ref, const char* ref_name,
+                const char* op = kOpName) {
+  TORCH_CHECK(t.device() == ref.device(), op, ": ", name, " must be on ", ref_name, "'s device (", ref.device(),
+              "), got ", t.device());
+  TORCH_CHECK(t.scalar_type() == ref.scalar_type(), op, ": ", name, " must have ", ref_name, "'s dtype (",
+              ref.scalar_type(), "), got ", t.scalar_type());
 }
 
 // Largest step count accepted: more steps never help (max_iter=None converges
@@ -61,10 +74,7 @@ at::Tensor checked_init(const at::Tensor& M, const std::optional<at::Tensor>& in
   check_matrix_arg(M, "M");
   if (!init.has_value() || !init->defined()) return at::Tensor();
   check_matrix_arg(*init, "init");
-  TORCH_CHECK(init->device() == M.device(), kOpName, ": init must be on M's device (", M.device(),
-              "), got ", init->device());
-  TORCH_CHECK(init->scalar_type() == M.scalar_type(), kOpName, ": init must have M's dtype (",
-              M.scalar_type(), "), got ", init->scalar_type());
+  check_like(*init, "init", M, "M");
   const auto m_batch = M.sizes().slice(0, M.dim() - 2);
   const auto init_batch = init->sizes().slice(0, init->dim() - 2);
   const bool broadcastable = at::is_expandable_to(init_batch, m_batch);
@@ -75,10 +85,7 @@ at::Tensor checked_init(const at::Tensor& M, const std::optional<at::Tensor>& in
 
 void check_out(const at::Tensor& M, const at::Tensor& out) {
   TORCH_CHECK(out.defined(), kOpName, ": out must be a tensor of M's shape, got None");
-  TORCH_CHECK(out.device() == M.device(), kOpName, ": out must be on M's device (", M.device(), "), got ",
-              out.device());
-  TORCH_CHECK(out.scalar_type() == M.scalar_type(), kOpName, ": out must have M's dtype (",
-              M.scalar_type(), "), got ", out.scalar_type());
+  check_like(out, "out", M, "M");
   TORCH_CHECK(out.sizes() == M.sizes(), kOpName, ": out must have M's shape ", M.sizes(), ", got ",
               out.sizes());
   TORCH_CHECK(at::has_internal_overlap(out) != at::MemOverlap::Yes, kOpName,
@@ -128,6 +135,18 @@ MatrixBatch contiguous_view(const at::Tensor& contiguous) {
   return view;
 }
 
+// (N, 3, 3) view of `t` broadcast to `shape` (its geometry, no copy), or of a
+// contiguous compute-dtype copy kept in `keep`.
+MatrixBatch broadcast_view(const at::Tensor& t, at::IntArrayRef shape, int64_t n, bool reduced,
+                           at::ScalarType compute, at::Tensor& keep) {
+  if (!reduced) {
+    const auto geometry = at::inferExpandGeometry_dimvector(t.sizes(), t.strides(), shape);
+    if (auto view = batch_view(t, geometry.sizes, geometry.strides, n)) return *view;
+  }
+  keep = t.expand(shape).to(compute).contiguous();
+  return contiguous_view(keep);
+}
+
 // Runs the kernel on (N, 3, 3) views of M, init (broadcast to M) and out,
 // converting reduced precision to float32. `out` has M's shape and dtype; it
 // may alias M or init exactly. Tensors are only materialised (copied) for
@@ -142,28 +161,15 @@ void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out,
   if (n == 0) return;
 
   at::Tensor m_keep, init_keep, out_keep;  // own any materialised copies
-  std::optional<MatrixBatch> m_view = reduced ? std::nullopt : batch_view(M, M.sizes(), M.strides(), n);
-  if (!m_view) {
-    m_keep = M.to(compute).contiguous();
-    m_view = contiguous_view(m_keep);
-  }
-  std::optional<MatrixBatch> init_view;
-  if (init.defined()) {
-    if (!reduced) {
-      const auto geometry = at::inferExpandGeometry_dimvector(init.sizes(), init.strides(), M.sizes());
-      init_view = batch_view(init, geometry.sizes, geometry.strides, n);
-    }
-    if (!init_view) {
-      init_keep = init.expand(M.sizes()).to(compute).contiguous();
-      init_view = contiguous_view(init_keep);
-    }
-  }
+  const MatrixBatch m_view = broadcast_view(M, M.sizes(), n, reduced, compute, m_keep);
+  MatrixBatch init_view;
+  if (init.defined()) init_view = broadcast_view(init, M.sizes(), n, reduced, compute, init_keep);
   std::optional<MatrixBatch> out_view = reduced ? std::nullopt : batch_view(out, out.sizes(), out.strides(), n);
   if (!out_view) {
     out_keep = at::empty({n, 3, 3}, M.options().dtype(compute));
     out_view = contiguous_view(out_keep);
   }
-  const int64_t bad_inits = fit_rotation_cpu(compute, n, *m_view, init.defined() ? &*init_view : nullptr,
+  const int64_t bad_inits = fit_rotation_cpu(compute, n, m_view, init.defined() ? &init_view : nullptr,
                                              *out_view, options, iterations, status);
   if (out_keep.defined()) out.copy_(out_keep.view(out.sizes()));
   TORCH_CHECK(bad_inits == 0, kOpName, ": init must hold rotations (|R^T R - I|_F < ",
@@ -214,40 +220,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_cpu_op(
 
 constexpr const char* kBackwardName = "torchrot.fit_rotation_backward";
 
-void check_tangent_arg(const at::Tensor& t, const char* name, const at::Tensor& R) {
-  TORCH_CHECK(t.defined(), kBackwardName, ": ", name, " must be a tensor of shape (..., 3, 3), got None");
-  TORCH_CHECK(t.dim() >= 2 && t.size(-1) == 3 && t.size(-2) == 3, kBackwardName, ": ", name,
-              " must have shape (..., 3, 3), got ", t.sizes());
-  TORCH_CHECK(t.device() == R.device(), kBackwardName, ": ", name, " must be on R's device (", R.device(),
-              "), got ", t.device());
-  TORCH_CHECK(t.scalar_type() == R.scalar_type(), kBackwardName, ": ", name, " must have R's dtype (",
-              R.scalar_type(), "), got ", t.scalar_type());
-}
-
-// (N, 3, 3) view of `t` broadcast to `shape` (its geometry, no copy), or of a
-// contiguous compute-dtype copy kept in `keep`.
-MatrixBatch broadcast_view(const at::Tensor& t, at::IntArrayRef shape, int64_t n, bool reduced,
-                           at::ScalarType compute, at::Tensor& keep) {
-  if (!reduced) {
-    const auto geometry = at::inferExpandGeometry_dimvector(t.sizes(), t.strides(), shape);
-    if (auto view = batch_view(t, geometry.sizes, geometry.strides, n)) return *view;
-  }
-  keep = t.expand(shape).to(compute).contiguous();
-  return contiguous_view(keep);
-}
-
 // dL/dM for dL/dR = grad at R = fit_rotation(M); with grad = dM instead, the
 // forward-mode dR (the linear map is self-adjoint, see
 // kernel/rotation_gradient.h). grad has R's shape; M broadcasts to it.
 at::Tensor fit_rotation_backward_cpu_op(const at::Tensor& grad, const at::Tensor& R, const at::Tensor& M,
                                         double gradient_eps) {
-  TORCH_CHECK(R.defined(), kBackwardName, ": R must be a tensor of shape (..., 3, 3), got None");
-  TORCH_CHECK(R.dim() >= 2 && R.size(-1) == 3 && R.size(-2) == 3, kBackwardName,
-              ": R must have shape (..., 3, 3), got ", R.sizes());
-  TORCH_CHECK(is_supported_dtype(R.scalar_type()), kBackwardName,
-              ": R must be float32, float64, float16 or bfloat16, got ", R.scalar_type());
-  check_tangent_arg(grad, "grad", R);
-  check_tangent_arg(M, "M", R);
+  check_matrix_arg(R, "R", kBackwardName);
+  const auto check_input = [&R](const at::Tensor& t, const char* name) {
+    check_matrix_shape(t, name, kBackwardName);
+    check_like(t, name, R, "R", kBackwardName);
+  };
+  check_input(grad, "grad");
+  check_input(M, "M");
   TORCH_CHECK(grad.sizes() == R.sizes(), kBackwardName, ": grad must have R's shape ", R.sizes(), ", got ",
               grad.sizes());
   TORCH_CHECK(at::is_expandable_to(M.sizes(), R.sizes()), kBackwardName, ": M of shape ", M.sizes(),

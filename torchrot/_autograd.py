@@ -36,14 +36,10 @@ from torchrot.reference import GRADIENT_EPS
 def rotation_tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: float) -> torch.Tensor:
     """dL/dM for X = dL/dR, or dR for X = dM, at R = fit_rotation(M).
 
-    X and R: ``(..., 3, 3)`` of the same shape; M: broadcastable to R (a
-    gradient for a broadcast M is summed back to M's shape by the caller).
+    X and R: ``(..., 3, 3)`` of the same shape; M: broadcastable to R (for
+    fit_rotation's own derivatives it has R's shape).
     """
     return torch.ops.torchrot.fit_rotation_backward(X, R, M, gradient_eps)
-
-
-def _gradient_for(M: torch.Tensor, grad_M: torch.Tensor) -> torch.Tensor:
-    return grad_M if grad_M.shape == M.shape else grad_M.sum_to_size(M.shape)
 
 
 def _no_second_derivative(ctx, grad):
@@ -60,12 +56,12 @@ def _setup_context(ctx, inputs, output):
     ctx.gradient_eps = inputs[4] if len(inputs) > 4 else GRADIENT_EPS
 
 
-def _backward(ctx, grad_R):
-    """dL/dM for the operator's five inputs (no gradient for init and the options)."""
+def _gradients(ctx, grad_R, tangent=rotation_tangent):
+    """dL/dM for the operator's five inputs (no gradient for init and the
+    options). R has M's shape (init broadcasts to M), so dL/dM needs no
+    reduction."""
     R, M = ctx.saved_tensors
-    grad_M = None
-    if ctx.needs_input_grad[0]:
-        grad_M = _gradient_for(M, rotation_tangent(grad_R, R, M, ctx.gradient_eps))
+    grad_M = tangent(grad_R, R, M, ctx.gradient_eps) if ctx.needs_input_grad[0] else None
     return grad_M, None, None, None, None
 
 
@@ -108,23 +104,19 @@ class FitRotationFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_R):
-        R, M = ctx.saved_tensors
-        grad_M = None
-        if ctx.needs_input_grad[0]:
-            grad_M = _gradient_for(M, _TangentFunction.apply(grad_R, R, M, ctx.gradient_eps))
-        return grad_M, None, None, None, None
+        return _gradients(ctx, grad_R, _TangentFunction.apply)
 
     @staticmethod
     def jvp(ctx, dM, _dinit, _max_iter, _variant, _gradient_eps):
         R, M = ctx.saved_tensors
         if dM is None:
             return torch.zeros_like(R)
-        return rotation_tangent(dM.expand(R.shape), R, M, ctx.gradient_eps)
+        return rotation_tangent(dM, R, M, ctx.gradient_eps)
 
 
 # ---- autograd of the operator itself (torch.ops.torchrot.fit_rotation) ----
 
-torch.library.register_autograd("torchrot::fit_rotation", _backward, setup_context=_setup_context)
+torch.library.register_autograd("torchrot::fit_rotation", _gradients, setup_context=_setup_context)
 
 
 # Differentiating the derivative raises instead of silently returning zeros.
