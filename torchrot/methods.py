@@ -203,6 +203,17 @@ def horn(M: Tensor) -> Tensor:
 # Mueller, Bender, Chentanez, Macklin 2016
 # ---------------------------------------------------------------------------
 
+def _retire(done: Tensor, active: Tensor, result: Tensor, current: Tensor, *lane_tensors: Tensor):
+    """Iterations over a shrinking set of matrices: writes the ``done`` lanes'
+    ``current`` iterate into ``result`` (at their indices ``active``) and drops
+    them from ``active``, ``current`` and every other per-lane tensor."""
+    if not bool(done.any()):
+        return (active, current, *lane_tensors)
+    result[active[done]] = current[done]
+    keep = ~done
+    return (active[keep], current[keep], *(t[keep] for t in lane_tensors))
+
+
 def _mueller_step(A: Tensor, q: Tensor, guard: float):
     """One update of Mueller et al. 2016 (their Eq. for omega): with r_i, a_i
     the columns of R(q) and A, omega = sum_i r_i x a_i / (|sum_i r_i . a_i| + guard)
@@ -294,10 +305,7 @@ def mueller(
         q_active, angle = _mueller_step(A_active, q_active, guard)
         iterations[active] += 1
         done = ~(angle >= tol)  # NaN counts as done
-        if bool(done.any()):
-            q[active[done]] = q_active[done]
-            keep = ~done
-            active, A_active, q_active = active[keep], A_active[keep], q_active[keep]
+        active, q_active, A_active = _retire(done, active, q, q_active, A_active)
     q[active] = q_active  # matrices still moving at the cap
     return _finish(quaternion_rotation(q), M, iterations, return_iterations)
 
@@ -401,10 +409,7 @@ def higham_polar(M: Tensor, *, max_iter: int | None = None, inverse: str = "lu",
             continue
         scaled[active] = scaled[active] & (change >= 1e-2)
         done = ~(change >= math.sqrt(eps))  # NaN counts as done
-        if bool(done.any()):
-            X[active[done]] = X_active[done]
-            keep = ~done
-            active, X_active = active[keep], X_active[keep]
+        active, X_active = _retire(done, active, X, X_active)
     X[active] = X_active
     return _finish(_det_fix(X, A), M, iterations, return_iterations)
 
@@ -473,10 +478,7 @@ def fa3r(M: Tensor, *, max_iter: int | None = FA3R_PAPER_ITERATIONS, return_iter
         residual = (X_active.mT @ X_active - torch.eye(3, dtype=M.dtype, device=M.device)).norm(dim=(-2, -1))
         X_active = X_next
         done = ~(residual >= math.sqrt(eps))  # NaN counts as done
-        if bool(done.any()):
-            X[active[done]] = X_active[done]
-            keep = ~done
-            active, X_active = active[keep], X_active[keep]
+        active, X_active = _retire(done, active, X, X_active)
     X[active] = X_active
     return _finish(X, M, iterations, return_iterations)
 
