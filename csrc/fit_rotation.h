@@ -20,10 +20,6 @@ enum class Variant : int8_t {
 struct FitOptions {
   int64_t max_iter = 0;
   Variant variant = Variant::kConservative;
-  // Orthonormality a warm start must have (|R^T R - I|_F); <= 0 means the
-  // compute dtype's default (1e-4 float, 1e-7 double). Inputs of reduced
-  // precision are computed in float but carry their own rounding.
-  double init_tolerance = 0;
 };
 
 // Per-matrix outcome, as reported by torchrot.fit_rotation_info.
@@ -34,9 +30,14 @@ enum class FitStatus : uint8_t {
   kNonFinite = 3,  // M or init held NaN/Inf: the result is NaN
 };
 
-// The kernel object fit_rotation_cpu uses now: "scalar", "default", "avx2"
-// or "avx512" (see cpu/dispatch.cpp).
+// The kernel object fit_rotation_cpu uses now in the calling thread:
+// "scalar", "default", "avx2" or "avx512" (see cpu/dispatch.cpp).
 std::string cpu_kernel_name();
+
+// Forces the kernel object `name` (capped at the hardware's level) for the
+// calling thread's calls; "" returns to the process-wide choice. Returns the
+// previously forced name ("" if none). ValueError for an unknown name.
+std::string set_thread_cpu_kernel(const std::string& name);
 
 // N row-major 3x3 matrices at `data`: entry (r, c) of matrix i is at
 // data + i * stride[0] + r * stride[1] + c * stride[2] (in elements).
@@ -53,6 +54,10 @@ struct MatrixBatch {
 int64_t fit_rotation_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& M, const MatrixBatch* init,
                          const MatrixBatch& out, const FitOptions& options, int32_t* iterations,
                          uint8_t* status);
+
+// How many of n warm starts are not rotations (limits::kInitTolerance, det
+// <= 0; NaN/Inf ones are data, not errors), by the check the fit applies.
+int64_t count_bad_warm_starts_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& init);
 
 // The derivative of n fits R = fit_rotation(M), from the optimality condition
 // (kernel/rotation_gradient.h): out = R [u]x with u the damped solution of

@@ -9,23 +9,37 @@
 #include <ATen/TensorUtils.h>
 #include <torch/library.h>
 
+#include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <string>
 #include <tuple>
+#include <utility>
+#include <vector>
 
 #include "fit_rotation.h"
+#include "limits.h"
 
 namespace torchrot {
 namespace {
 
+// Every check raises what the Python-side checks (torchrot/_checks.py: fake
+// kernels, other devices, torch.compile) raise, with the same message:
+// TypeError (TORCH_CHECK_TYPE) for a wrong type or dtype, ValueError
+// (TORCH_CHECK_VALUE) for a wrong value, shape or device. Limits and defaults
+// come from limits.h.
 constexpr const char* kOpName = "torchrot.fit_rotation";
+constexpr const char* kBackwardName = "torchrot.fit_rotation_backward";
+
+// A dtype as Python prints it ("torch.float32").
+std::string dtype_name(at::ScalarType t) { return "torch." + std::string(c10::getDtypeNames(t).first); }
 
 Variant parse_variant(c10::string_view variant) {
   if (variant == "newton") return Variant::kNewton;
   if (variant == "conservative") return Variant::kConservative;
   if (variant == "gershgorin") return Variant::kGershgorin;
-  TORCH_CHECK(false, kOpName, ": variant must be one of 'newton', 'conservative', 'gershgorin', got '",
-              std::string(variant), "'");
+  TORCH_CHECK_VALUE(false, kOpName, ": variant must be one of 'newton', 'conservative', 'gershgorin', got '",
+                    std::string(variant), "'");
 }
 
 bool is_supported_dtype(at::ScalarType t) {
@@ -33,36 +47,32 @@ bool is_supported_dtype(at::ScalarType t) {
 }
 
 void check_matrix_shape(const at::Tensor& t, const char* name, const char* op = kOpName) {
-  TORCH_CHECK(t.defined(), op, ": ", name, " must be a tensor of shape (..., 3, 3), got None");
-  TORCH_CHECK(t.dim() >= 2 && t.size(-1) == 3 && t.size(-2) == 3, op, ": ", name,
-              " must have shape (..., 3, 3), got ", t.sizes());
+  TORCH_CHECK_TYPE(t.defined(), op, ": ", name, " must be a torch.Tensor, got NoneType");
+  TORCH_CHECK_VALUE(t.dim() >= 2 && t.size(-1) == 3 && t.size(-2) == 3, op, ": ", name,
+                    " must have shape (..., 3, 3), got ", t.sizes());
 }
 
 void check_matrix_arg(const at::Tensor& t, const char* name, const char* op = kOpName) {
   check_matrix_shape(t, name, op);
-  TORCH_CHECK(is_supported_dtype(t.scalar_type()), op, ": ", name,
-              " must be float32, float64, float16 or bfloat16, got ", t.scalar_type());
+  TORCH_CHECK_TYPE(is_supported_dtype(t.scalar_type()), op, ": ", name,
+                   " must be float32, float64, float16 or bfloat16, got ", dtype_name(t.scalar_type()));
 }
 
 // `t` (argument `name`) must be on `ref`'s device and have its dtype.
 void check_like(const at::Tensor& t, const char* name, const at::Tensor& ref, const char* ref_name,
                 const char* op = kOpName) {
-  TORCH_CHECK(t.device() == ref.device(), op, ": ", name, " must be on ", ref_name, "'s device (", ref.device(),
-              "), got ", t.device());
-  TORCH_CHECK(t.scalar_type() == ref.scalar_type(), op, ": ", name, " must have ", ref_name, "'s dtype (",
-              ref.scalar_type(), "), got ", t.scalar_type());
+  TORCH_CHECK_VALUE(t.device() == ref.device(), op, ": ", name, " must be on ", ref_name, "'s device (",
+                    ref.device(), "), got ", t.device());
+  TORCH_CHECK_TYPE(t.scalar_type() == ref.scalar_type(), op, ": ", name, " must have ", ref_name, "'s dtype (",
+                   dtype_name(ref.scalar_type()), "), got ", dtype_name(t.scalar_type()));
 }
-
-// Largest step count accepted: more steps never help (max_iter=None converges
-// with a guaranteed fallback), and on flat problems (rank-1 M) a lane can
-// step without converging until its cap, which made huge values hang.
-constexpr int64_t kMaxIter = 1000;
 
 FitOptions parse_options(std::optional<int64_t> max_iter, c10::string_view variant) {
   FitOptions options;
   if (max_iter.has_value()) {
-    TORCH_CHECK(*max_iter >= 1 && *max_iter <= kMaxIter, kOpName,
-                ": max_iter must be None (iterate to convergence) or >= 1 and <= ", kMaxIter, ", got ", *max_iter);
+    TORCH_CHECK_VALUE(*max_iter >= 1 && *max_iter <= limits::kMaxIter, kOpName,
+                      ": max_iter must be None (iterate to convergence) or an int >= 1 and <= ", limits::kMaxIter,
+                      ", got ", *max_iter);
     options.max_iter = *max_iter;
   }
   options.variant = parse_variant(variant);
@@ -77,43 +87,83 @@ at::Tensor checked_init(const at::Tensor& M, const std::optional<at::Tensor>& in
   check_like(*init, "init", M, "M");
   const auto m_batch = M.sizes().slice(0, M.dim() - 2);
   const auto init_batch = init->sizes().slice(0, init->dim() - 2);
-  const bool broadcastable = at::is_expandable_to(init_batch, m_batch);
-  TORCH_CHECK(broadcastable, kOpName, ": init of shape ", init->sizes(),
-              " must broadcast to M's shape ", M.sizes());
+  TORCH_CHECK_VALUE(at::is_expandable_to(init_batch, m_batch), kOpName, ": init of shape ", init->sizes(),
+                    " must broadcast to M's shape ", M.sizes());
   return *init;
 }
 
-void check_out(const at::Tensor& M, const at::Tensor& out) {
-  TORCH_CHECK(out.defined(), kOpName, ": out must be a tensor of M's shape, got None");
-  check_like(out, "out", M, "M");
-  TORCH_CHECK(out.sizes() == M.sizes(), kOpName, ": out must have M's shape ", M.sizes(), ", got ",
-              out.sizes());
-  TORCH_CHECK(at::has_internal_overlap(out) != at::MemOverlap::Yes, kOpName,
-              ": out must not have overlapping elements (e.g. an expanded tensor)");
+// Whether two distinct elements of `t` share memory. Exact: strides that nest
+// (each at least the extent of the smaller ones: every dense or sliced
+// tensor) are decided at once, others by sorting their element offsets.
+bool has_overlapping_elements(const at::Tensor& t) {
+  std::vector<std::pair<int64_t, int64_t>> dims;  // (|stride|, size) of dims with size > 1
+  for (int64_t d = 0; d < t.dim(); ++d) {
+    if (t.size(d) > 1) dims.emplace_back(std::abs(t.stride(d)), t.size(d));
+  }
+  std::sort(dims.begin(), dims.end());
+  int64_t extent = 1;
+  bool nested = true;
+  for (const auto& [stride, size] : dims) {
+    if (stride == 0) return true;
+    if (stride < extent) nested = false;
+    extent += (size - 1) * stride;
+  }
+  if (nested) return false;
+  at::Tensor offsets = at::zeros(t.sizes(), at::TensorOptions().dtype(at::kLong));
+  for (int64_t d = 0; d < t.dim(); ++d) {
+    std::vector<int64_t> shape(t.dim(), 1);
+    shape[d] = t.size(d);
+    offsets = offsets + (at::arange(t.size(d), at::kLong) * t.stride(d)).view(shape);
+  }
+  const at::Tensor sorted = std::get<0>(offsets.flatten().sort());
+  return sorted.slice(0, 1).eq(sorted.slice(0, 0, -1)).any().item<bool>();
 }
 
-// Largest damping accepted: beyond it the derivative is ~0 anyway, and the
-// kernel's eps^4 terms would overflow float (NaN gradients from 1e10 on).
-constexpr double kMaxGradientEps = 1e3;
+void check_out(const at::Tensor& M, const at::Tensor& out) {
+  TORCH_CHECK_TYPE(out.defined(), kOpName, ": out must be a torch.Tensor, got NoneType");
+  check_like(out, "out", M, "M");
+  TORCH_CHECK_VALUE(out.sizes() == M.sizes(), kOpName, ": out must have M's shape ", M.sizes(), ", got ",
+                    out.sizes());
+  TORCH_CHECK_VALUE(!has_overlapping_elements(out), kOpName,
+                    ": out must not have overlapping elements (e.g. an expanded tensor)");
+}
 
 void check_gradient_eps(double gradient_eps, const char* op_name) {
-  TORCH_CHECK(std::isfinite(gradient_eps) && gradient_eps >= 0 && gradient_eps <= kMaxGradientEps, op_name,
-              ": gradient_eps must be a finite number >= 0 and <= ", kMaxGradientEps, ", got ", gradient_eps);
+  TORCH_CHECK_VALUE(std::isfinite(gradient_eps) && gradient_eps >= 0 && gradient_eps <= limits::kMaxGradientEps,
+                    op_name, ": gradient_eps must be a finite number >= 0 and <= ", limits::kMaxGradientEps,
+                    ", got ", gradient_eps);
 }
 
-// Orthonormality tolerance of warm starts by the caller's dtype: reduced
-// precision rotations carry their own rounding (eps 1e-3 / 8e-3).
-double init_tolerance(at::ScalarType dtype) {
-  switch (dtype) {
-    case at::kHalf:
-      return 1e-2;
-    case at::kBFloat16:
-      return 5e-2;
-    case at::kFloat:
-      return 1e-4;
-    default:
-      return 1e-7;
+// The error for `bad` of `n` warm starts that are not rotations.
+[[noreturn]] void throw_bad_init(int64_t bad, int64_t n) {
+  TORCH_CHECK_VALUE(false, kOpName, ": init must hold rotations (|R^T R - I|_F < ", limits::kInitTolerance,
+                    " and det R > 0; rotations of any float dtype qualify); ", bad, " of ", n,
+                    " are not: pass rotations, or no init for a cold start");
+}
+
+// [first, last] byte address that an element of `t` occupies (numel > 0).
+std::pair<uintptr_t, uintptr_t> byte_range(const at::Tensor& t) {
+  int64_t low = 0, high = 0;
+  for (int64_t d = 0; d < t.dim(); ++d) {
+    const int64_t span = (t.size(d) - 1) * t.stride(d);
+    (span < 0 ? low : high) += span;
   }
+  const auto base = reinterpret_cast<uintptr_t>(t.data_ptr());
+  const int64_t item = static_cast<int64_t>(t.element_size());
+  return {base + low * item, base + high * item + item - 1};
+}
+
+// Whether `out` must be computed through a temporary because writing it
+// could change `input` before it is read: any overlap except the exact
+// identity (same elements in the same layout, which the kernels allow: a
+// block's inputs are in registers before its result is stored).
+bool overlaps_other_than_identity(const at::Tensor& out, const at::Tensor& input) {
+  if (!input.defined() || out.numel() == 0 || input.numel() == 0) return false;
+  if (out.data_ptr() == input.data_ptr() && out.sizes() == input.sizes() && out.strides() == input.strides()) {
+    return false;
+  }
+  const auto a = byte_range(out), b = byte_range(input);
+  return a.first <= b.second && b.first <= a.second;
 }
 
 // (N, 3, 3) view of a tensor with the given (possibly broadcast) geometry,
@@ -147,34 +197,57 @@ MatrixBatch broadcast_view(const at::Tensor& t, at::IntArrayRef shape, int64_t n
   return contiguous_view(keep);
 }
 
+// Raises (ValueError) if a warm start of `init`, taken in its own shape
+// (not broadcast), is not a rotation: run before anything is written, so that
+// a call that raises leaves the caller's out as it was.
+void check_warm_starts(const at::Tensor& init, at::ScalarType compute, bool reduced) {
+  const int64_t n = init.numel() / 9;
+  if (n == 0) return;
+  at::Tensor keep;
+  const MatrixBatch view = broadcast_view(init, init.sizes(), n, reduced, compute, keep);
+  const int64_t bad = count_bad_warm_starts_cpu(compute, n, view);
+  if (bad != 0) throw_bad_init(bad, n);
+}
+
+// Where run_fit writes: `out` itself, given by the caller or allocated for
+// them.
+enum class Output { kFresh, kCallers };
+
 // Runs the kernel on (N, 3, 3) views of M, init (broadcast to M) and out,
-// converting reduced precision to float32. `out` has M's shape and dtype; it
-// may alias M or init exactly. Tensors are only materialised (copied) for
-// reduced precision and for layouts whose batch cannot be flattened.
+// converting reduced precision to float32. `out` has M's shape and dtype.
+// Tensors are only materialised (copied) for reduced precision, for layouts
+// whose batch cannot be flattened, and for a caller's out that overlaps M or
+// init other than exactly. A caller's out is written only once the call can
+// no longer fail.
 void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out, FitOptions options,
-             int32_t* iterations, uint8_t* status) {
+             Output output, int32_t* iterations, uint8_t* status) {
   const at::ScalarType dtype = M.scalar_type();
   const bool reduced = dtype == at::kHalf || dtype == at::kBFloat16;
   const at::ScalarType compute = reduced ? at::kFloat : dtype;
-  options.init_tolerance = init_tolerance(dtype);
   const int64_t n = M.numel() / 9;
   if (n == 0) return;
+  if (init.defined() && output == Output::kCallers) check_warm_starts(init, compute, reduced);
 
   at::Tensor m_keep, init_keep, out_keep;  // own any materialised copies
   const MatrixBatch m_view = broadcast_view(M, M.sizes(), n, reduced, compute, m_keep);
   MatrixBatch init_view;
   if (init.defined()) init_view = broadcast_view(init, M.sizes(), n, reduced, compute, init_keep);
-  std::optional<MatrixBatch> out_view = reduced ? std::nullopt : batch_view(out, out.sizes(), out.strides(), n);
+  const bool through_temporary =
+      output == Output::kCallers &&
+      (overlaps_other_than_identity(out, M) || overlaps_other_than_identity(out, init));
+  std::optional<MatrixBatch> out_view;
+  if (!reduced && !through_temporary) out_view = batch_view(out, out.sizes(), out.strides(), n);
   if (!out_view) {
     out_keep = at::empty({n, 3, 3}, M.options().dtype(compute));
     out_view = contiguous_view(out_keep);
   }
   const int64_t bad_inits = fit_rotation_cpu(compute, n, m_view, init.defined() ? &init_view : nullptr,
                                              *out_view, options, iterations, status);
+  if (bad_inits != 0) {  // only a fresh out has been written; the error counts init in its own shape
+    check_warm_starts(init, compute, reduced);
+    throw_bad_init(bad_inits, n);  // not reached: the same check found them
+  }
   if (out_keep.defined()) out.copy_(out_keep.view(out.sizes()));
-  TORCH_CHECK(bad_inits == 0, kOpName, ": init must hold rotations (|R^T R - I|_F < ",
-              options.init_tolerance, " for ", dtype, ", det R > 0); ", bad_inits, " of ", n,
-              " matrices do not (out has NaN in their place)");
 }
 
 at::Tensor fit_rotation_cpu_op(const at::Tensor& M, const std::optional<at::Tensor>& init,
@@ -183,24 +256,19 @@ at::Tensor fit_rotation_cpu_op(const at::Tensor& M, const std::optional<at::Tens
   const FitOptions options = parse_options(max_iter, variant);
   check_gradient_eps(gradient_eps, kOpName);
   at::Tensor out = at::empty(M.sizes(), M.options().memory_format(at::MemoryFormat::Contiguous));
-  run_fit(M, init_b, out, options, nullptr, nullptr);
+  run_fit(M, init_b, out, options, Output::kFresh, nullptr, nullptr);
   return out;
 }
 
+// out may be M or init itself (an in-place warm-start update); any other
+// overlap with them is computed through a temporary.
 void fit_rotation_out_cpu_op(const at::Tensor& M, const std::optional<at::Tensor>& init,
                              std::optional<int64_t> max_iter, c10::string_view variant,
                              const at::Tensor& out) {
   const at::Tensor init_b = checked_init(M, init);
   const FitOptions options = parse_options(max_iter, variant);
   check_out(M, out);
-  // out may be M or init itself (an in-place warm-start update), but not a
-  // partial overlap, which would let one matrix's output clobber another's input.
-  TORCH_CHECK(at::get_overlap_status(out, M) != at::MemOverlapStatus::Partial, kOpName,
-              ": out must be M itself or not overlap it; it partially overlaps M");
-  TORCH_CHECK(!init.has_value() || !init->defined() ||
-                  at::get_overlap_status(out, *init) != at::MemOverlapStatus::Partial,
-              kOpName, ": out must be init itself or not overlap it; it partially overlaps init");
-  run_fit(M, init_b, out, options, nullptr, nullptr);
+  run_fit(M, init_b, out, options, Output::kCallers, nullptr, nullptr);
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_cpu_op(
@@ -212,13 +280,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_cpu_op(
   const auto batch = M.sizes().slice(0, M.dim() - 2);
   at::Tensor iterations = at::empty(batch, M.options().dtype(at::kInt));
   at::Tensor status = at::empty(batch, M.options().dtype(at::kByte));
-  run_fit(M, init_b, out, options, iterations.data_ptr<int32_t>(), status.data_ptr<uint8_t>());
+  run_fit(M, init_b, out, options, Output::kFresh, iterations.data_ptr<int32_t>(), status.data_ptr<uint8_t>());
   return {out, iterations, status};
 }
 
 // ---- the derivative (fit_rotation_backward) ----
-
-constexpr const char* kBackwardName = "torchrot.fit_rotation_backward";
 
 // dL/dM for dL/dR = grad at R = fit_rotation(M); with grad = dM instead, the
 // forward-mode dR (the linear map is self-adjoint, see
@@ -232,10 +298,10 @@ at::Tensor fit_rotation_backward_cpu_op(const at::Tensor& grad, const at::Tensor
   };
   check_input(grad, "grad");
   check_input(M, "M");
-  TORCH_CHECK(grad.sizes() == R.sizes(), kBackwardName, ": grad must have R's shape ", R.sizes(), ", got ",
-              grad.sizes());
-  TORCH_CHECK(at::is_expandable_to(M.sizes(), R.sizes()), kBackwardName, ": M of shape ", M.sizes(),
-              " must broadcast to R's shape ", R.sizes());
+  TORCH_CHECK_VALUE(grad.sizes() == R.sizes(), kBackwardName, ": grad must have R's shape ", R.sizes(), ", got ",
+                    grad.sizes());
+  TORCH_CHECK_VALUE(at::is_expandable_to(M.sizes(), R.sizes()), kBackwardName, ": M of shape ", M.sizes(),
+                    " must broadcast to R's shape ", R.sizes());
   check_gradient_eps(gradient_eps, kBackwardName);
   const at::ScalarType dtype = R.scalar_type();
   const bool reduced = dtype == at::kHalf || dtype == at::kBFloat16;
@@ -259,11 +325,15 @@ at::Tensor fit_rotation_backward_cpu_op(const at::Tensor& grad, const at::Tensor
 
 }  // namespace
 
+#define TORCHROT_STRINGIFY_(x) #x
+#define TORCHROT_STRINGIFY(x) TORCHROT_STRINGIFY_(x)
+#define TORCHROT_GRADIENT_EPS_ARG "float gradient_eps=" TORCHROT_STRINGIFY(TORCHROT_DEFAULT_GRADIENT_EPS)
+
 TORCH_LIBRARY(torchrot, m) {
   // gradient_eps only affects the derivative (see fit_rotation_backward).
   m.def(
       "fit_rotation(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\", "
-      "float gradient_eps=1e-6) -> Tensor");
+      TORCHROT_GRADIENT_EPS_ARG ") -> Tensor");
   m.def(
       "fit_rotation_out(Tensor M, Tensor? init, int? max_iter, str variant, Tensor(a!) out) -> ()");
   m.def(
@@ -272,16 +342,21 @@ TORCH_LIBRARY(torchrot, m) {
   // dL/dM given dL/dR = grad at R = fit_rotation(M), through the optimality
   // condition (R^T M symmetric) with Tikhonov damping gradient_eps; the same
   // map gives the forward-mode tangent dR from dM.
-  m.def("fit_rotation_backward(Tensor grad, Tensor R, Tensor M, float gradient_eps=1e-6) -> Tensor");
-  // Which CPU kernel object runs: "scalar", "default", "avx2" or "avx512".
+  m.def("fit_rotation_backward(Tensor grad, Tensor R, Tensor M, " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor");
+  // Which CPU kernel object runs in the calling thread: "scalar", "default",
+  // "avx2" or "avx512".
   m.def("cpu_kernel() -> str", [] { return cpu_kernel_name(); });
+  // Forces a kernel object for the calling thread ("" to stop); returns the
+  // previously forced one. Use torchrot.testing.cpu_kernel(name).
+  m.def("_set_cpu_kernel(str name) -> str",
+        [](c10::string_view name) { return set_thread_cpu_kernel(std::string(name)); });
   // Operators that do nothing: the benchmark's yardsticks for the fixed cost
   // of a custom-op call, with one argument, and with fit_rotation's
   // signature and an (uninitialised) output of M's shape.
   m.def("_empty_op(Tensor M) -> ()");
   m.def(
       "_empty_fit_rotation(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\", "
-      "float gradient_eps=1e-6) -> Tensor");
+      TORCHROT_GRADIENT_EPS_ARG ") -> Tensor");
 }
 
 TORCH_LIBRARY_IMPL(torchrot, CPU, m) {

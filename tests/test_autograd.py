@@ -15,8 +15,10 @@ import torch
 from torch.func import grad, jacfwd, jacrev, jvp, vmap
 
 import torchrot
-from torchrot.reference import GRADIENT_EPS, fit_rotation_backward_reference
+from torchrot._limits import GRADIENT_EPS
+from torchrot.reference import fit_rotation_backward_reference
 from torchrot.testing import (
+    cpu_kernel,
     DEGENERATE_FAMILIES,
     make_degenerate_matrices,
     make_matrices,
@@ -182,18 +184,18 @@ def _supported_isas():
 
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
-def test_every_kernel_bit_identical_to_scalar(dtype, monkeypatch):
+def test_every_kernel_bit_identical_to_scalar(dtype):
     """All tail lengths 0..70, contiguous and strided layouts."""
     G, R, M = _backward_case(70, dtype, seed=7)
     G_strided = G.mT.contiguous().mT  # column-major entries
     for isa in _supported_isas()[1:]:
         for n in range(0, 71):
             for g in (G[:n], G_strided[:n]):
-                monkeypatch.setenv("TORCHROT_CPU_CAPABILITY", "scalar")
-                expected = op.fit_rotation_backward(g, R[:n], M[:n], GRADIENT_EPS)
-                monkeypatch.setenv("TORCHROT_CPU_CAPABILITY", isa)
-                assert op.cpu_kernel() == isa
-                got = op.fit_rotation_backward(g, R[:n], M[:n], GRADIENT_EPS)
+                with cpu_kernel("scalar"):
+                    expected = op.fit_rotation_backward(g, R[:n], M[:n], GRADIENT_EPS)
+                with cpu_kernel(isa) as used:
+                    assert used == isa
+                    got = op.fit_rotation_backward(g, R[:n], M[:n], GRADIENT_EPS)
                 assert torch.equal(got, expected), f"{isa}, n={n}"
 
 

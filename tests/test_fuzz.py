@@ -35,7 +35,6 @@ Convention: R (det +1) maximises tr(R^T M); column vectors.
 """
 from __future__ import annotations
 
-import contextlib
 import itertools
 import math
 import os
@@ -47,11 +46,10 @@ from hypothesis import strategies as st
 
 import torchrot
 from torchrot.reference import quaternion_rotation, rotation_svd
-from torchrot.testing import CRITERIA, DISTRIBUTIONS, random_rotations
+from torchrot.testing import CRITERIA, DISTRIBUTIONS, cpu_kernel, random_rotations
 
 DTYPES = (torch.float32, torch.float64)
 VARIANTS = ("newton", "conservative", "gershgorin")
-ENV = "TORCHROT_CPU_CAPABILITY"
 ISAS = ("scalar", "default", "avx2", "avx512")
 
 
@@ -106,17 +104,8 @@ def _report_counts(request):
 # ---------------------------------------------------------------------------
 
 
-@contextlib.contextmanager
 def _kernel(isa: str):
-    previous = os.environ.get(ENV)
-    os.environ[ENV] = isa
-    try:
-        yield
-    finally:
-        if previous is None:
-            del os.environ[ENV]
-        else:
-            os.environ[ENV] = previous
+    return cpu_kernel(isa)
 
 
 def _bits(t: torch.Tensor) -> torch.Tensor:

@@ -5,10 +5,12 @@ variant and warm start, every batch size (SIMD tails), every layout
 (contiguous fast path with in-register transposes vs strided path), in place,
 and independently of the thread count.
 
-The kernel is chosen per call from TORCHROT_CPU_CAPABILITY (scalar | default |
-avx2 | avx512), capped at the hardware level; every test that compares kernels
-also checks with ``torch.ops.torchrot.cpu_kernel()`` that the requested kernel
-is the one that ran, so an ignored variable cannot make a test pass vacuously.
+The kernel is forced per thread with ``torchrot.testing.cpu_kernel(name)``
+(scalar | default | avx2 | avx512), capped at the hardware level; the process
+default is TORCHROT_CPU_CAPABILITY, read once at import (tested in
+subprocesses). Every test that compares kernels also checks with
+``torch.ops.torchrot.cpu_kernel()`` that the requested kernel is the one that
+ran, so an ignored request cannot make a test pass vacuously.
 
 Results are compared bit for bit (integer views of the floats): NaN payloads
 and signed zeros count, as "bit-identical" promises.
@@ -34,6 +36,7 @@ from torchrot.testing import (
     make_warm_start,
     random_rotations,
 )
+from torchrot.testing import cpu_kernel as forced_kernel
 
 # as in conftest.py (not imported from it: conftest is not a module to import)
 DTYPES = (torch.float32, torch.float64)
@@ -85,23 +88,10 @@ def _cpu_kernel() -> str:
 
 
 @pytest.fixture
-def use_isa(monkeypatch):
-    """``with use_isa(name): ...`` runs its body with TORCHROT_CPU_CAPABILITY
-    set to ``name`` (None: unset), restoring the previous value on exit. The
-    variable is unset for the whole test to start from a known state, and
-    monkeypatch restores the caller's environment at teardown."""
-    monkeypatch.delenv(ENV, raising=False)
-
-    @contextlib.contextmanager
-    def use(name: str | None):
-        with monkeypatch.context() as mp:
-            if name is None:
-                mp.delenv(ENV, raising=False)
-            else:
-                mp.setenv(ENV, name)
-            yield
-
-    return use
+def use_isa():
+    """``with use_isa(name): ...`` runs its body on kernel ``name`` (None or
+    "": the process default), in this thread only (torchrot.testing.cpu_kernel)."""
+    return forced_kernel
 
 
 # ---------------------------------------------------------------------------
@@ -174,7 +164,7 @@ def _info(M, init, max_iter, variant):
 def _run_info(use_isa, isa, M, init, max_iter, variant):
     """fit_rotation_info under kernel ``isa``, checking that it is the one used."""
     with use_isa(isa):
-        assert _cpu_kernel() == isa, f"{ENV}={isa} selected kernel {_cpu_kernel()!r}"
+        assert _cpu_kernel() == isa, f"cpu_kernel({isa!r}) selected kernel {_cpu_kernel()!r}"
         return _info(M, init, max_iter, variant)
 
 
@@ -258,7 +248,8 @@ def test_mixed_batch_has_what_it_promises():
 
 
 # ---------------------------------------------------------------------------
-# 1. cpu_kernel() follows TORCHROT_CPU_CAPABILITY, capped at the hardware
+# 1. the kernel follows the request (per thread) and TORCHROT_CPU_CAPABILITY
+#    (at import), capped at the hardware
 # ---------------------------------------------------------------------------
 
 
@@ -270,20 +261,20 @@ def test_unset_selects_hardware_level(use_isa):
 
 
 @pytest.mark.parametrize("isa", ALL_ISA_PARAMS)
-def test_cpu_kernel_follows_env(isa, use_isa):
+def test_cpu_kernel_follows_request(isa, use_isa):
     for spelling in (isa, isa.upper(), isa.capitalize()):  # case-insensitive
-        with use_isa(spelling):
-            assert _cpu_kernel() == isa, f"{ENV}={spelling!r}"
-    # read on every call: switching back and forth takes effect at once
+        with use_isa(spelling) as used:
+            assert _cpu_kernel() == used == isa, f"cpu_kernel({spelling!r})"
+    # switching back and forth takes effect at once, and requests nest
     for other in ISAS:
         if not _supported(other):
             continue
         with use_isa(other):
             assert _cpu_kernel() == other
-        with use_isa(isa):
-            assert _cpu_kernel() == isa
-    with use_isa(None):
-        assert _cpu_kernel() == HARDWARE_ISA
+            with use_isa(isa):
+                assert _cpu_kernel() == isa
+            assert _cpu_kernel() == other
+    assert _cpu_kernel() == HARDWARE_ISA
 
 
 def test_request_above_hardware_is_capped(use_isa):
@@ -293,23 +284,67 @@ def test_request_above_hardware_is_capped(use_isa):
     M = make_matrices("gaussian", 37, 0)
     for isa in above:
         with use_isa(isa):
-            assert _cpu_kernel() == HARDWARE_ISA, f"{ENV}={isa}"
+            assert _cpu_kernel() == HARDWARE_ISA, f"cpu_kernel({isa!r})"
             # and it computes (no illegal instruction)
             assert torch.isfinite(torchrot.fit_rotation(M)).all()
 
 
+def test_request_is_per_thread(use_isa):
+    """A kernel forced in one thread does not change another thread's."""
+    import threading
+
+    seen = {}
+    entered, release = threading.Event(), threading.Event()
+
+    def other():
+        with use_isa("scalar"):
+            seen["inside"] = _cpu_kernel()
+            entered.set()
+            release.wait(30)
+
+    thread = threading.Thread(target=other)
+    thread.start()
+    assert entered.wait(30)
+    seen["main"] = _cpu_kernel()
+    release.set()
+    thread.join()
+    assert seen == {"inside": "scalar", "main": HARDWARE_ISA}
+
+
+_ENV_SCRIPT = r"""
+import json, os, torch, torchrot
+first = torch.ops.torchrot.cpu_kernel()
+os.environ["TORCHROT_CPU_CAPABILITY"] = "sse2"  # read once, at import: no effect now
+print(json.dumps([first, torch.ops.torchrot.cpu_kernel()]))
+"""
+
+
+def _run_with_env(script: str, **env_vars) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != ENV}
+    env.update(env_vars)
+    return subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("isa", ["scalar", "default", "AVX2", "avx512", ""])
+def test_environment_variable_is_read_once_at_import(isa):
+    proc = _run_with_env(_ENV_SCRIPT, **{ENV: isa})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    expected = ISAS[min(ISA_LEVEL[isa.lower()], ISA_LEVEL[HARDWARE_ISA])] if isa else HARDWARE_ISA
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == [expected, expected]
+
+
 _CAP_SCRIPT = r"""
-import json, os, sys, torch, torchrot
+import json, torch, torchrot
+from torchrot.testing import cpu_kernel
 out = {"aten": torch.backends.cpu.get_cpu_capability(), "kernels": {}, "same_as_scalar": {}}
 M = torch.randn(53, 3, 3, generator=torch.Generator().manual_seed(3))
-os.environ["TORCHROT_CPU_CAPABILITY"] = "scalar"
-ref = torchrot.fit_rotation_info(M)
+with cpu_kernel("scalar"):
+    ref = torchrot.fit_rotation_info(M)
 for req in ("scalar", "default", "avx2", "avx512", "AVX512"):
-    os.environ["TORCHROT_CPU_CAPABILITY"] = req
-    out["kernels"][req] = torch.ops.torchrot.cpu_kernel()
-    got = torchrot.fit_rotation_info(M)
+    with cpu_kernel(req) as used:
+        out["kernels"][req] = used
+        got = torchrot.fit_rotation_info(M)
     out["same_as_scalar"][req] = all(torch.equal(a, b) for a, b in zip(got, ref))
-del os.environ["TORCHROT_CPU_CAPABILITY"]
 out["kernels"]["<unset>"] = torch.ops.torchrot.cpu_kernel()
 print(json.dumps(out))
 """
@@ -321,11 +356,7 @@ def test_request_above_lowered_hardware_level_is_capped(aten_level):
     hence a subprocess), every request above it is capped to it."""
     if not _supported(aten_level):
         pytest.skip(f"CPU supports up to {HARDWARE_ISA}")
-    env = {k: v for k, v in os.environ.items() if k != ENV}
-    env["ATEN_CPU_CAPABILITY"] = aten_level
-    proc = subprocess.run(
-        [sys.executable, "-c", _CAP_SCRIPT], env=env, capture_output=True, text=True, timeout=120
-    )
+    proc = _run_with_env(_CAP_SCRIPT, ATEN_CPU_CAPABILITY=aten_level)
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert result["aten"] == aten_level.upper()
@@ -339,21 +370,20 @@ def test_request_above_lowered_hardware_level_is_capped(aten_level):
 
 
 @pytest.mark.parametrize("value", ["sse4", "avx-512", "avx512 ", " avx2", "AVX2x", "none", "1", "neon"])
-def test_invalid_value_raises(value, use_isa):
-    M = make_matrices("gaussian", 4, 0)
-    with use_isa(value):
-        with pytest.raises(RuntimeError, match=ENV) as excinfo:
-            _cpu_kernel()
-        assert f"'{value}'" in str(excinfo.value)  # names the offending value
-        assert "scalar, default, avx2, avx512" in str(excinfo.value)
-        with pytest.raises(RuntimeError, match=ENV):
-            torchrot.fit_rotation(M)
-        with pytest.raises(RuntimeError, match=ENV):
-            torchrot.fit_rotation_info(M, max_iter=1)
-    # no lasting effect once the variable is valid again
-    with use_isa(None):
-        assert _cpu_kernel() == HARDWARE_ISA
-        assert torch.isfinite(torchrot.fit_rotation(M)).all()
+def test_invalid_request_raises(value, use_isa):
+    """A bad name raises ValueError naming it, and changes nothing."""
+    with pytest.raises(ValueError, match=r"scalar, default, avx2, avx512; got") as excinfo:
+        with use_isa(value):
+            pass
+    assert f"'{value}'" in str(excinfo.value)
+    assert _cpu_kernel() == HARDWARE_ISA
+
+
+@pytest.mark.parametrize("value", ["sse4", "avx-512", "neon"])
+def test_invalid_environment_variable_fails_the_import(value):
+    proc = _run_with_env("import torchrot", **{ENV: value})
+    assert proc.returncode != 0
+    assert f"ValueError: {ENV} must be one of scalar, default, avx2, avx512; got '{value}'" in proc.stderr
 
 
 # ---------------------------------------------------------------------------

@@ -29,6 +29,8 @@ Registered here:
 from __future__ import annotations
 
 import torch
+from torch._functorch.utils import enable_single_level_autograd_function, unwrap_dead_wrappers
+from torch.autograd import forward_ad
 
 from torchrot.reference import GRADIENT_EPS
 
@@ -114,15 +116,69 @@ class FitRotationFunction(torch.autograd.Function):
         return rotation_tangent(dM, R, M, ctx.gradient_eps)
 
 
-# ---- autograd of the operator itself (torch.ops.torchrot.fit_rotation) ----
+# ---- autograd of the operators themselves (torch.ops.torchrot.*) ----
+#
+# Not torch.library.register_autograd: the autograd.Function it generates has
+# no forward-mode rule (under torch.func.jvp / forward AD the tangent silently
+# came out as zero) and no setup_context (torch.func.grad raised). These
+# Autograd kernels apply the autograd.Functions above instead, so the operator
+# is differentiable in every mode and under every torch.func transform, also
+# where torch.compile traces it.
 
-torch.library.register_autograd("torchrot::fit_rotation", _gradients, setup_context=_setup_context)
+_lib = torch.library.Library("torchrot", "IMPL")
 
 
+def _has_tangent(args) -> bool:
+    """Whether a tensor argument carries a forward-mode tangent. A dual level
+    opened by forward_ad.dual_level sets forward_ad._current_level, but one
+    replayed by torch.compile's tracer (AOTAutograd, make_fx) does not, so
+    traced tensors (subclasses: FakeTensor, FunctionalTensor, ...) are
+    checked one by one (the check costs about as much as a small fit)."""
+    if forward_ad._current_level >= 0:
+        return True
+    return any(
+        type(a) is not torch.Tensor and torch._VF._unpack_dual(a, 0).tangent is not None
+        for a in args if isinstance(a, torch.Tensor)
+    )
+
+
+def _register_autograd(name: str, function: type[torch.autograd.Function]) -> None:
+    """Makes ``function`` (applied to the operator's full argument list) the
+    Autograd kernel of ``torchrot::<name>``."""
+    op = getattr(torch.ops.torchrot, name).default
+    defaults = tuple(a.default_value for a in op._schema.arguments)
+    # Function.apply without its per-call signature binding (arguments are
+    # always complete here), which would cost several times the fit itself.
+    apply = super(torch.autograd.Function, function).apply
+
+    def kernel(keyset, *args):
+        args = args + defaults[len(args):]  # the dispatcher drops trailing defaulted arguments
+        functorch = torch._C._are_functorch_transforms_active()
+        # Derivatives to record: reverse mode with an input that requires
+        # grad; forward mode while a dual level is open (torch.func.jvp's
+        # levels, also replayed by torch.compile, are functorch levels; the
+        # tangents themselves cannot be queried cheaply). Inside the
+        # Function's forward both modes are off, so the operator it calls
+        # comes back here and runs below autograd.
+        if (torch.is_grad_enabled() and torch._C._any_requires_grad(*args)) or (
+            torch._C._is_fwd_grad_enabled() and (functorch or _has_tangent(args))
+        ):
+            if not functorch:
+                return apply(*unwrap_dead_wrappers(args))
+            # Called by a torch.func grad/jvp level on its wrapped tensors, as
+            # any operator's autograd kernel is: the Function records at that
+            # one level, like functorch's own per-level Functions.
+            with enable_single_level_autograd_function():
+                return apply(*args)
+        with torch._C._AutoDispatchBelowAutograd():
+            return op.redispatch(keyset & torch._C._after_autograd_keyset, *args)
+
+    _lib.impl(name, kernel, "Autograd", with_keyset=True)
+
+
+_register_autograd("fit_rotation", FitRotationFunction)
 # Differentiating the derivative raises instead of silently returning zeros.
-torch.library.register_autograd(
-    "torchrot::fit_rotation_backward", _no_second_derivative, setup_context=lambda ctx, inputs, output: None
-)
+_register_autograd("fit_rotation_backward", _TangentFunction)
 
 
 # ---- vmap rules: every operator takes any batch shape, so a vmapped

@@ -11,9 +11,18 @@ from typing import NamedTuple
 import torch
 from torch.autograd import forward_ad
 
-from torchrot._autograd import FitRotationFunction
-from torchrot._checks import check_all, check_backward, check_gradient_eps, check_out
-from torchrot.reference import GRADIENT_EPS, fit_rotation_backward_reference, fit_rotation_reference
+import torchrot._autograd  # noqa: F401  (registers the operators' derivatives)
+from torchrot._checks import (
+    check_all,
+    check_backward,
+    check_gradient_eps,
+    check_max_iter_type,
+    check_out,
+    check_tensor,
+    check_variant_type,
+)
+from torchrot._limits import GRADIENT_EPS
+from torchrot.reference import fit_rotation_backward_reference, fit_rotation_reference
 
 _OTHER_DEVICES = ("cuda", "xpu", "mps")
 
@@ -92,49 +101,62 @@ def fit_rotation(
     fit runs in float32.
 
     Raises:
-        ValueError / TypeError / RuntimeError naming the argument: M not
-        ``(..., 3, 3)`` or not floating point; init of another shape, dtype or
-        device, or not a rotation; out of the wrong shape, dtype or device, or
-        overlapping itself or partially overlapping M or init, or given while
-        M requires grad; unknown variant; max_iter < 1; gradient_eps < 0.
+        TypeError for an argument of the wrong type or dtype, ValueError for a
+        wrong value, shape or device (docs/errors.md), naming the argument: M
+        not ``(..., 3, 3)`` or not floating point; init of another shape,
+        dtype or device, or not a rotation; out of the wrong shape, dtype or
+        device, with overlapping elements, or given while M requires grad;
+        unknown variant; max_iter out of range; gradient_eps out of range.
+        A call that raises changes no tensor it was given.
     """
-    _check_tensor(M)
-    _check_max_iter(max_iter)
-    if gradient_eps is not GRADIENT_EPS:
-        check_gradient_eps(gradient_eps)
+    _check_call(M, init, max_iter, variant, gradient_eps, out)
     differentiable = _needs_derivative(M)
     if out is not None:
         if differentiable:
-            raise RuntimeError(
+            raise ValueError(
                 "torchrot.fit_rotation: out= does not support automatic differentiation "
                 "(M requires grad); call it without out"
             )
         torch.ops.torchrot.fit_rotation_out(M, init, max_iter, variant, out)
         return out
-    if torch.compiler.is_compiling():
-        # The operator's own autograd (register_autograd) is what torch.compile
-        # traces; dynamo does not trace an autograd.Function with a custom jvp.
+    if differentiable or torch.compiler.is_compiling():
+        # The operator's Autograd kernel (torchrot/_autograd.py) records the
+        # derivatives in every mode (backward, forward AD, each torch.func
+        # level), in eager and where torch.compile traces it, so both run the
+        # same path. (Not FitRotationFunction.apply: dynamo cannot trace an
+        # autograd.Function with a custom jvp, and apply costs twice as much.)
+        # Under torch.autocast the operator's autocast kernel casts to float32.
         return torch.ops.torchrot.fit_rotation.default(M, init, max_iter, variant, gradient_eps)
-    if differentiable:
-        M, init = _autocast_inputs(M, init)
-        return FitRotationFunction.apply(M, init, max_iter, variant, float(gradient_eps))
-    # Nothing to differentiate: skip the operator's autograd kernel, which is
-    # Python (torch.library.register_autograd) and would more than double the
-    # cost of a small call.
+    # Nothing to differentiate: skip the operator's Autograd kernel, which is
+    # Python and would more than double the cost of a small call.
     with torch._C._AutoDispatchBelowAutograd():
         return torch.ops.torchrot.fit_rotation.default(M, init, max_iter, variant, gradient_eps)
 
 
-def _check_tensor(M) -> None:
-    # Without a tensor argument the dispatcher cannot pick a kernel and says
-    # so at length; name the argument instead.
-    if not isinstance(M, torch.Tensor):
-        raise TypeError(f"torchrot.fit_rotation: M must be a torch.Tensor, got {type(M).__name__}")
-
-
-def _check_max_iter(max_iter) -> None:
-    if max_iter is not None and type(max_iter) is not int:  # bool is an int to the op's schema
-        raise TypeError(f"torchrot.fit_rotation: max_iter must be None or an int >= 1, got {max_iter!r}")
+def _check_call(M, init, max_iter, variant, gradient_eps, out=None) -> None:
+    """The wrapper's share of the argument checks. Eager: the types that the
+    operator's schema would reject with a generic RuntimeError; the operator
+    checks the rest (csrc/ops.cpp). While torch.compile traces: all of them,
+    in the operator's order, so that a bad argument raises its own TypeError /
+    ValueError (a graph break runs it eagerly) instead of an error wrapped by
+    the tracer around the fake kernel's."""
+    check_tensor(M, "M")
+    if init is not None:
+        check_tensor(init, "init")
+    check_max_iter_type(max_iter)
+    check_variant_type(variant)
+    if out is not None:
+        check_tensor(out, "out")
+    if torch.compiler.is_compiling():
+        check_all(M, init, max_iter, variant)
+        if out is not None:
+            check_out(M, out)
+        check_gradient_eps(gradient_eps)
+    elif gradient_eps is not GRADIENT_EPS:
+        if out is not None:  # fit_rotation_out does not take it: check it after the operator's checks would run
+            check_all(M, init, max_iter, variant)
+            check_out(M, out)
+        check_gradient_eps(gradient_eps)
 
 
 def _needs_derivative(M: torch.Tensor) -> bool:
@@ -142,15 +164,6 @@ def _needs_derivative(M: torch.Tensor) -> bool:
     torch.func.grad, whose tensors require grad) or forward mode (a dual
     level is open, also under torch.func.jvp)."""
     return (torch.is_grad_enabled() and M.requires_grad) or forward_ad._current_level >= 0
-
-
-def _autocast_inputs(M: torch.Tensor, init: torch.Tensor | None):
-    """The float32 cast autocast applies inside the operator, done before the
-    autograd.Function so that R, M and the saved tensors share one dtype."""
-    if M.dtype in (torch.float16, torch.bfloat16) and torch.is_autocast_enabled(M.device.type):
-        M = M.float()
-        init = None if init is None else init.float()
-    return M, init
 
 
 def fit_rotation_info(
@@ -177,8 +190,7 @@ def fit_rotation_info(
 
     Raises: the errors of :func:`fit_rotation`.
     """
-    _check_tensor(M)
-    _check_max_iter(max_iter)
+    _check_call(M, init, max_iter, variant, GRADIENT_EPS)
     return FitInfo(*torch.ops.torchrot.fit_rotation_info(M, init, max_iter, variant))
 
 
@@ -234,13 +246,17 @@ def _fit_rotation_info_fake(M, init=None, max_iter=None, variant="conservative")
 
 @torch.library.register_kernel("torchrot::fit_rotation", _OTHER_DEVICES)
 def _fit_rotation_other(M, init=None, max_iter=None, variant="conservative", gradient_eps=GRADIENT_EPS):
+    check_all(M, init, max_iter, variant)  # in the C++ operator's order
     check_gradient_eps(gradient_eps)
     return fit_rotation_reference(M, init, max_iter=max_iter, variant=variant)
 
 
 @torch.library.register_kernel("torchrot::fit_rotation_out", _OTHER_DEVICES)
 def _fit_rotation_out_other(M, init, max_iter, variant, out):
+    check_all(M, init, max_iter, variant)
     check_out(M, out)
+    # Computed before out is written: out may overlap M or init in any way,
+    # and a call that raises leaves it as it was.
     out.copy_(fit_rotation_reference(M, init, max_iter=max_iter, variant=variant))
 
 

@@ -17,14 +17,13 @@ Two parts:
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
 import platform
 import statistics
 from dataclasses import asdict, dataclass, field
-from typing import Callable, Iterator
+from typing import Callable
 
 import torch
 import torch.utils.benchmark as tbench
@@ -34,7 +33,7 @@ from torchrot import baselines
 from torchrot import methods as paper
 from torchrot.apps.datasets import RECORDED as RECORDED_DATA
 from torchrot.reference import rotation_svd
-from torchrot.testing import make_warm_start
+from torchrot.testing import cpu_kernel, make_warm_start
 
 Tensor = torch.Tensor
 ISAS = ("scalar", "default", "avx2", "avx512")
@@ -102,21 +101,9 @@ def supported_isas() -> list[str]:
     return list(ISAS[: top + 1])
 
 
-@contextlib.contextmanager
-def forced_isa(isa: str | None) -> Iterator[None]:
-    """Runs torchrot with kernel ``isa`` (None: the best the CPU supports)."""
-    previous = os.environ.get("TORCHROT_CPU_CAPABILITY")
-    try:
-        if isa is None:
-            os.environ.pop("TORCHROT_CPU_CAPABILITY", None)
-        else:
-            os.environ["TORCHROT_CPU_CAPABILITY"] = isa
-        yield
-    finally:
-        if previous is None:
-            os.environ.pop("TORCHROT_CPU_CAPABILITY", None)
-        else:
-            os.environ["TORCHROT_CPU_CAPABILITY"] = previous
+def forced_isa(isa: str | None):
+    """Runs torchrot with kernel ``isa`` (None: the process default) in this thread."""
+    return cpu_kernel(isa)
 
 
 def _torchrot_methods(isa: str | None, label: str, variants: tuple[str, ...]) -> list[Method]:

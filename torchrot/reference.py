@@ -16,16 +16,18 @@ import math
 
 import torch
 
-from torchrot._checks import OP_NAME, check_all, check_backward, check_matrix_arg
-
-# Mirrors kernel::Tolerances (csrc/kernel/fit_rotation_impl.h).
-CONVERGED_CAP = 12
-MAX_ESCAPES = 2
-ESTIMATE_SWITCH = 1e-4
-GERSHGORIN_STEPS = 2
-MAX_CHECK_SLACK_EPS = 4.0
-# |R^T R - I|_F a warm start may have, by the caller's dtype (csrc/ops.cpp).
-INIT_TOLERANCE = {torch.float16: 1e-2, torch.bfloat16: 5e-2, torch.float32: 1e-4, torch.float64: 1e-7}
+from torchrot._checks import bad_init_error, check_all, check_backward, check_matrix_arg
+from torchrot._limits import (
+    CONVERGED_CAP,
+    ESTIMATE_SWITCH,
+    GERSHGORIN_STEPS,
+    GRADIENT_EPS,
+    INIT_CLEAN,
+    INIT_CLEAN_STEPS,
+    INIT_TOLERANCE,
+    MAX_CHECK_SLACK_EPS,
+    MAX_ESCAPES,
+)
 
 # FitStatus codes (csrc/fit_rotation.h).
 STATUS_CAYLEY, STATUS_FALLBACK, STATUS_BAD_INIT, STATUS_NON_FINITE = 0, 1, 2, 3
@@ -223,11 +225,34 @@ def _normalized(M: torch.Tensor):
     return (M * lift) / denom, max_abs[..., 0, 0]
 
 
-def _is_rotation(R: torch.Tensor, G: torch.Tensor, tol: float) -> torch.Tensor:
-    """|R^T R - I|_F < tol and det R > 0, with G = R^T R (csrc/kernel/optimality.h)."""
-    eye = torch.eye(3, dtype=R.dtype, device=R.device)
-    deviation2 = ((G - eye) ** 2).sum((-2, -1))
-    return (deviation2 < tol * tol) & (torch.linalg.det(R) > 0)
+def _deviation2(G: torch.Tensor) -> torch.Tensor:
+    """|G - I|_F^2 for a Gram matrix G = R^T R (orthonormality_deviation2)."""
+    eye = torch.eye(3, dtype=G.dtype, device=G.device)
+    return ((G - eye) ** 2).sum((-2, -1))
+
+
+def _check_warm_start(init: torch.Tensor):
+    """(finite, bad, deviation^2) of warm starts, as csrc/kernel/optimality.h's
+    check_warm_start: bad where finite but |R^T R - I|_F >= INIT_TOLERANCE or
+    det <= 0."""
+    G = init.mT @ init
+    finite = torch.isfinite(G.diagonal(dim1=-2, dim2=-1).sum(-1))
+    deviation2 = _deviation2(G)
+    rotation = (deviation2 < INIT_TOLERANCE**2) & (torch.linalg.det(init) > 0)
+    return finite, finite & ~rotation, deviation2
+
+
+def _clean_warm_start(init: torch.Tensor, usable: torch.Tensor, deviation2: torch.Tensor) -> torch.Tensor:
+    """Newton-Schulz steps on the usable warm starts whose deviation is at or
+    above the compute dtype's INIT_CLEAN, each until it is below
+    (clean_warm_start in csrc/kernel/optimality.h); masked, no host sync."""
+    clean2 = INIT_CLEAN[str(init.dtype).removeprefix("torch.")] ** 2
+    rough = usable & ~(deviation2 < clean2)
+    R = init
+    for _ in range(INIT_CLEAN_STEPS):
+        R = torch.where(rough[..., None, None], _reorthonormalize(R), R)
+        rough = rough & ~(_deviation2(R.mT @ R) < clean2)
+    return R
 
 
 def _best_start_rotation(A: torch.Tensor) -> torch.Tensor:
@@ -325,7 +350,6 @@ def fit_rotation_reference(
     check_all(M, init, max_iter, variant)
     out_dtype = M.dtype
     compute = torch.float32 if M.dtype in (torch.float16, torch.bfloat16) else M.dtype
-    tolerance = INIT_TOLERANCE[M.dtype]
     M = M.to(compute)
     batch = M.shape[:-2]
     eps = torch.finfo(compute).eps
@@ -334,16 +358,14 @@ def fit_rotation_reference(
     zero = max_abs == 0
     bad_init = torch.zeros_like(finite)
     if init is not None:
-        init = init.to(compute).expand(M.shape)
-        G = init.mT @ init
-        finite = finite & torch.isfinite(G.diagonal(dim1=-2, dim2=-1).sum(-1))
-        bad_init = finite & ~_is_rotation(init, G, tolerance)
-        if M.device.type != "meta" and bool(bad_init.any()):
-            raise ValueError(
-                f"{OP_NAME}: init must hold rotations (|R^T R - I|_F < {tolerance:g} for {out_dtype},"
-                f" det R > 0); {int(bad_init.sum())} of {bad_init.numel()} matrices do not"
-            )
-        R = init  # its small orthonormality error is removed at the end
+        init = init.to(compute)
+        init_finite, init_bad, deviation2 = _check_warm_start(init)
+        if M.device.type != "meta" and bool(init_bad.any()):
+            raise bad_init_error(int(init_bad.sum()), init_bad.numel())  # counted in init's own shape
+        init_finite, init_bad, deviation2 = (t.expand(batch) for t in (init_finite, init_bad, deviation2))
+        finite = finite & init_finite
+        bad_init = init_bad
+        R = _clean_warm_start(init.expand(M.shape), init_finite & ~init_bad, deviation2)
     else:
         R = _best_start_rotation(A)
     A = torch.where(finite[..., None, None], A, torch.zeros_like(A))  # keep NaN out of eigh
@@ -362,9 +384,6 @@ def fit_rotation_reference(
     if return_info:
         return R, iterations, status
     return R
-
-
-GRADIENT_EPS = 1e-6  # default damping of the derivative (csrc/ops.cpp schema)
 
 
 def _cross_matrix(u: torch.Tensor) -> torch.Tensor:

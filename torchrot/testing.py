@@ -9,14 +9,38 @@ gives R x ~ y); ``rotation_svd`` in float64 is the reference.
 """
 from __future__ import annotations
 
+import contextlib
 import math
-from typing import Callable
+from typing import Callable, Iterator
 
 import torch
 
 from torchrot.reference import cayley_rotation, rotation_svd
 
 Generator = Callable[[int, torch.Generator], torch.Tensor]
+
+#: The CPU kernel objects, lowest level first.
+CPU_KERNELS = ("scalar", "default", "avx2", "avx512")
+
+
+@contextlib.contextmanager
+def cpu_kernel(name: str | None) -> Iterator[str]:
+    """``with cpu_kernel("scalar") as used: ...`` runs the calling thread's
+    torchrot calls on the CPU kernel object ``name`` (one of CPU_KERNELS,
+    case-insensitive), capped at what this CPU supports; ``None`` runs the
+    process-wide choice. ``used`` is the kernel that runs
+    (``torch.ops.torchrot.cpu_kernel()``). Other threads keep theirs: the
+    choice is per thread, so this is safe in multi-threaded tests. Nests.
+
+    The process-wide choice is the environment variable
+    TORCHROT_CPU_CAPABILITY, read once when torchrot is imported.
+    Raises ValueError for an unknown name.
+    """
+    previous = torch.ops.torchrot._set_cpu_kernel(name or "")
+    try:
+        yield torch.ops.torchrot.cpu_kernel()
+    finally:
+        torch.ops.torchrot._set_cpu_kernel(previous)
 
 
 def random_rotations(

@@ -4,7 +4,11 @@
 // the CPU's features and honours ATEN_CPU_CAPABILITY). The environment
 // variable TORCHROT_CPU_CAPABILITY = scalar | default | avx2 | avx512 can only
 // lower it: a request above what the CPU supports is capped, so no setting
-// can make torchrot execute instructions the CPU lacks.
+// can make torchrot execute instructions the CPU lacks. It is read once, when
+// torchrot is imported (torchrot/__init__.py asks for the kernel name, which
+// raises for a bad value); a thread can force another kernel for its own calls
+// with set_thread_cpu_kernel (torchrot.testing.cpu_kernel), which never
+// affects other threads.
 #include <ATen/Dispatch.h>
 #include <ATen/Version.h>
 #include <c10/util/Exception.h>
@@ -23,6 +27,7 @@ namespace {
 enum class Isa : int { kScalar = 0, kDefault = 1, kAvx2 = 2, kAvx512 = 3 };
 
 constexpr const char* kIsaNames[] = {"scalar", "default", "avx2", "avx512"};
+constexpr const char* kEnvironmentVariable = "TORCHROT_CPU_CAPABILITY";
 
 Isa hardware_isa() {
   static const Isa isa = [] {
@@ -34,20 +39,30 @@ Isa hardware_isa() {
   return isa;
 }
 
-Isa parse_isa(const char* text) {
+// The level named `text` (case-insensitive), capped at the hardware's.
+Isa parse_isa(const char* text, const char* what) {
   for (int i = 0; i < 4; ++i) {
-    if (strcasecmp(text, kIsaNames[i]) == 0) return static_cast<Isa>(i);
+    if (strcasecmp(text, kIsaNames[i]) == 0) return std::min(static_cast<Isa>(i), hardware_isa());
   }
-  TORCH_CHECK(false, "TORCHROT_CPU_CAPABILITY must be one of scalar, default, avx2, avx512; got '", text,
-              "'");
+  TORCH_CHECK_VALUE(false, what, " must be one of scalar, default, avx2, avx512; got '", text, "'");
 }
 
-// Read on every call (it is cheap) so tests can switch kernels in-process.
-Isa selected_isa() {
-  const char* requested = std::getenv("TORCHROT_CPU_CAPABILITY");
-  if (requested == nullptr || requested[0] == '\0') return hardware_isa();
-  return std::min(parse_isa(requested), hardware_isa());
+// The process-wide level: TORCHROT_CPU_CAPABILITY as it was at the first call
+// (thread-safe static initialisation; a bad value raises and is read again
+// next time, so the import that makes the first call fails with the message).
+Isa process_isa() {
+  static const Isa isa = [] {
+    const char* requested = std::getenv(kEnvironmentVariable);
+    if (requested == nullptr || requested[0] == '\0') return hardware_isa();
+    return parse_isa(requested, kEnvironmentVariable);
+  }();
+  return isa;
 }
+
+// A level forced by the calling thread (-1: none).
+thread_local int forced_isa = -1;
+
+Isa selected_isa() { return forced_isa >= 0 ? static_cast<Isa>(forced_isa) : process_isa(); }
 
 const cpu::KernelTable& kernels(Isa isa) {
   switch (isa) {
@@ -69,6 +84,14 @@ void fill_view(const MatrixBatch& batch, const T*& data, int64_t stride[3]) {
   for (int d = 0; d < 3; ++d) stride[d] = batch.stride[d];
 }
 
+int64_t run_kernel(const cpu::KernelTable& table, const cpu::WarmStartArgs<float>& args) {
+  return table.bad_warm_starts_float(args);
+}
+
+int64_t run_kernel(const cpu::KernelTable& table, const cpu::WarmStartArgs<double>& args) {
+  return table.bad_warm_starts_double(args);
+}
+
 int64_t run_kernel(const cpu::KernelTable& table, const cpu::BatchArgs<float>& args) {
   return table.fit_float(args);
 }
@@ -88,6 +111,28 @@ void run_kernel(const cpu::KernelTable& table, const cpu::TangentArgs<double>& a
 }  // namespace
 
 std::string cpu_kernel_name() { return kernels(selected_isa()).name; }
+
+std::string set_thread_cpu_kernel(const std::string& name) {
+  const std::string previous = forced_isa >= 0 ? kIsaNames[forced_isa] : "";
+  if (name.empty()) {
+    forced_isa = -1;
+  } else {
+    forced_isa = static_cast<int>(parse_isa(name.c_str(), "torchrot.testing.cpu_kernel: name"));
+  }
+  return previous;
+}
+
+int64_t count_bad_warm_starts_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& init) {
+  const cpu::KernelTable& table = kernels(selected_isa());
+  int64_t bad = 0;
+  AT_DISPATCH_FLOATING_TYPES(dtype, "torchrot_count_bad_warm_starts_cpu", [&] {
+    cpu::WarmStartArgs<scalar_t> args{};
+    fill_view(init, args.init, args.stride);
+    args.n = n;
+    bad = run_kernel(table, args);
+  });
+  return bad;
+}
 
 int64_t fit_rotation_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& M, const MatrixBatch* init,
                          const MatrixBatch& out, const FitOptions& options, int32_t* iterations,

@@ -140,7 +140,7 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
       const Mat3<typename L::V> M = load_block<L, kContiguous>(args.M, args.m_stride, first, count);
       Mat3<typename L::V> R0;
       if (args.init != nullptr) R0 = load_block<L, kContiguous>(args.init, args.init_stride, first, count);
-      kernel::LaneState<L> s = kernel::begin_fit<L>(M, args.init != nullptr ? &R0 : nullptr, args.options);
+      kernel::LaneState<L> s = kernel::begin_fit<L>(M, args.init != nullptr ? &R0 : nullptr);
       kernel::advance<L>(s, args.options, first_budget);
       // Lanes still running get a provisional result, replaced in a later pass.
       store_block<L, kContiguous>(kernel::finish<L>(s), args.out, args.out_stride, first, count);
@@ -191,6 +191,29 @@ int64_t fit_batch(const BatchArgs<typename L::Scalar>& args) {
     bad_inits += contiguous ? fit_range<L, true>(args, begin, end) : fit_range<L, false>(args, begin, end);
   });
   return bad_inits.load();
+}
+
+// The warm starts that are not rotations, by the check begin_fit applies,
+// without fitting: fit_rotation_out validates init before it writes anything,
+// so that a call that raises leaves `out` (which may be init itself) as it was.
+template <typename L>
+int64_t count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& args) {
+  const bool contiguous = is_contiguous_batch(args.stride);
+  std::atomic<int64_t> bad{0};
+  at::parallel_for(0, args.n, kGrainSize, [&](int64_t begin, int64_t end) {
+    int64_t local = 0;
+    for (int64_t first = begin; first < end; first += L::width) {
+      const int count = static_cast<int>(std::min<int64_t>(L::width, end - first));
+      const Mat3<typename L::V> R0 = contiguous ? load_block<L, true>(args.init, args.stride, first, count)
+                                                : load_block<L, false>(args.init, args.stride, first, count);
+      const typename L::Mask lanes_bad = kernel::check_warm_start<L>(R0).bad;
+      if (L::any(lanes_bad)) {
+        for (int j = 0; j < count; ++j) local += L::lane_set(lanes_bad, j);
+      }
+    }
+    bad += local;
+  });
+  return bad.load();
 }
 
 }  // namespace

@@ -20,7 +20,9 @@ KernelTable make_kernel_table(const char* name) {
                      &fit_batch<Lanes<float>>,
                      &fit_batch<Lanes<double>>,
                      &tangent_batch<Lanes<float>>,
-                     &tangent_batch<Lanes<double>>};
+                     &tangent_batch<Lanes<double>>,
+                     &count_bad_warm_starts<Lanes<float>>,
+                     &count_bad_warm_starts<Lanes<double>>};
 }
 
 }  // namespace

@@ -42,6 +42,14 @@ struct TangentArgs {
   T damping;  // eps of lambda = eps |M|_F
 };
 
+// N warm starts (3x3, any element strides) to check without fitting.
+template <typename T>
+struct WarmStartArgs {
+  const T* init;
+  int64_t stride[3];
+  int64_t n;
+};
+
 struct KernelTable {
   const char* name;
   int width_float;   // matrices per SIMD block
@@ -51,6 +59,9 @@ struct KernelTable {
   int64_t (*fit_double)(const BatchArgs<double>&);
   void (*tangent_float)(const TangentArgs<float>&);
   void (*tangent_double)(const TangentArgs<double>&);
+  // The number of warm starts that are not rotations (the fit's own check).
+  int64_t (*bad_warm_starts_float)(const WarmStartArgs<float>&);
+  int64_t (*bad_warm_starts_double)(const WarmStartArgs<double>&);
 };
 
 // One per kernel object; the SIMD ones must only be called on CPUs that

@@ -12,6 +12,7 @@
 #include <cstdint>
 #include <limits>
 
+#include "../limits.h"
 #include "cayley.h"
 #include "cold_start.h"
 #include "horn_fallback.h"
@@ -44,24 +45,22 @@ struct Tolerances {
   // warm data ran out of steps (measured). The conservative estimate exceeds
   // tr S only by ~m.m / (2 tr S), which vanishes quadratically at the
   // optimum, while it still damps steps that are not small (Sec. 4.2).
-  static constexpr T estimate_switch = T(1e-4);
-  static constexpr int gershgorin_steps = 2;
+  static constexpr T estimate_switch = T(limits::kEstimateSwitch);
+  static constexpr int gershgorin_steps = limits::kGershgorinSteps;
   // Slack of the second-order check: the objective may fall short of the
   // maximum by at most 2 * slack * max |M_ij|.
-  static constexpr T max_check_slack = T(4) * eps;
+  static constexpr T max_check_slack = T(limits::kMaxCheckSlackEps) * eps;
   // Cayley steps allowed in converged mode per start or saddle escape.
-  static constexpr int converged_cap = 12;
+  static constexpr int converged_cap = limits::kConvergedCap;
   // Saddle escapes allowed in converged mode before the fallback decides.
-  static constexpr int max_escapes = 2;
+  static constexpr int max_escapes = limits::kMaxEscapes;
   // Most steps a lane can take in converged mode.
   static constexpr int converged_budget = (max_escapes + 1) * converged_cap;
+  // Warm starts (limits.h): accepted below init_tolerance, used as they are
+  // below init_clean.
+  static constexpr T init_tolerance = T(limits::kInitTolerance);
+  static constexpr T init_clean = T(sizeof(T) == 4 ? limits::kInitCleanFloat : limits::kInitCleanDouble);
 };
-
-// Default orthonormality tolerance of a warm start, per dtype.
-template <typename T>
-constexpr T default_init_tolerance() {
-  return sizeof(T) == 4 ? T(1e-4) : T(1e-7);
-}
 
 template <typename L>
 struct LaneState {
@@ -79,13 +78,15 @@ struct LaneState {
   Mask non_finite;   // M or init held NaN/Inf
 };
 
-// Normalises M and picks the start: init (re-orthonormalised) or the cold
-// start. `init` may be null; lanes whose M or init are unusable, and M = 0
-// (every rotation is optimal: the start is kept), do not run.
+// Normalises M and picks the start: init (brought to the compute precision,
+// see clean_warm_start) or the cold start. `init` may be null; lanes whose M
+// or init are unusable, and M = 0 (every rotation is optimal: the start is
+// kept), do not run. A warm start that is not a rotation is flagged whatever M
+// holds (the operator rejects the call).
 template <typename L>
-inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename L::V>* init,
-                              const FitOptions& options) {
+inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename L::V>* init) {
   using T = typename L::Scalar;
+  using Tol = Tolerances<T>;
   using V = typename L::V;
   using Mask = typename L::Mask;
   LaneState<L> s;
@@ -106,11 +107,10 @@ inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename 
   for (int k = 0; k < 9; ++k) s.A.a[k] = (M.a[k] * lift) * inv;
 
   if (init != nullptr) {
-    const Mat3<V> G = gram(*init);
-    finite = L::mask_and(finite, L::is_finite(G(0, 0) + G(1, 1) + G(2, 2)));  // all entries finite
-    const T tol = options.init_tolerance > 0 ? T(options.init_tolerance) : default_init_tolerance<T>();
-    s.bad_init = L::mask_and(finite, L::mask_not(is_rotation<L>(*init, G, tol)));
-    s.R = *init;  // its small orthonormality error is removed by finish()
+    const WarmStartCheck<L> check = check_warm_start<L>(*init);
+    finite = L::mask_and(finite, check.finite);
+    s.bad_init = check.bad;
+    s.R = clean_warm_start<L>(*init, check, Tol::init_clean);
   } else {
     s.R = best_start_rotation<L>(s.A);
   }

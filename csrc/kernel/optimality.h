@@ -1,7 +1,8 @@
 // Per-lane predicates of the driver: is a fixed point the maximum, and is a
-// warm start a rotation.
+// warm start a rotation (and its clean-up to the compute precision).
 #pragma once
 
+#include "../limits.h"
 #include "lanes.h"
 #include "mat3.h"
 
@@ -30,19 +31,67 @@ inline typename L::Mask is_maximum(const Mat3<typename L::V>& S, typename L::Sca
   return L::mask_and(L::gt(p00, zero), L::mask_and(L::gt(minor2, zero), L::gt(det, zero)));
 }
 
-// Is R, with Gram matrix G = R^T R, a proper rotation up to `tol`:
-// |R^T R - I|_F < tol and det R > 0? NaN fails.
-template <typename L>
-inline typename L::Mask is_rotation(const Mat3<typename L::V>& R, const Mat3<typename L::V>& G,
-                                    typename L::Scalar tol) {
-  using V = typename L::V;
+// |G - I|_F^2 for the Gram matrix G = R^T R: how far R is from orthonormal.
+template <typename V>
+inline V orthonormality_deviation2(const Mat3<V>& G) {
   const V d0 = G(0, 0) - V(1), d1 = G(1, 1) - V(1), d2 = G(2, 2) - V(1);
   const V off = G(0, 1) * G(0, 1) + G(0, 2) * G(0, 2) + G(1, 2) * G(1, 2);
-  const V deviation2 = d0 * d0 + d1 * d1 + d2 * d2 + V(2) * off;
-  const V det = R(0, 0) * (R(1, 1) * R(2, 2) - R(1, 2) * R(2, 1)) -
-                R(0, 1) * (R(1, 0) * R(2, 2) - R(1, 2) * R(2, 0)) +
-                R(0, 2) * (R(1, 0) * R(2, 1) - R(1, 1) * R(2, 0));
-  return L::mask_and(L::lt(deviation2, V(tol * tol)), L::gt(det, V(0)));
+  return d0 * d0 + d1 * d1 + d2 * d2 + V(2) * off;
+}
+
+template <typename V>
+inline V determinant(const Mat3<V>& R) {
+  return R(0, 0) * (R(1, 1) * R(2, 2) - R(1, 2) * R(2, 1)) - R(0, 1) * (R(1, 0) * R(2, 2) - R(1, 2) * R(2, 0)) +
+         R(0, 2) * (R(1, 0) * R(2, 1) - R(1, 1) * R(2, 0));
+}
+
+// A warm start R0, checked: `finite` where all its entries are finite, `bad`
+// where it is finite but not a rotation (|R0^T R0 - I|_F >= init_tolerance or
+// det R0 <= 0, limits.h), and its Gram matrix and deviation for the clean-up.
+template <typename L>
+struct WarmStartCheck {
+  typename L::Mask finite, bad;
+  Mat3<typename L::V> G;
+  typename L::V deviation2;
+};
+
+template <typename L>
+inline WarmStartCheck<L> check_warm_start(const Mat3<typename L::V>& R) {
+  using V = typename L::V;
+  using T = typename L::Scalar;
+  WarmStartCheck<L> check;
+  check.G = gram(R);
+  check.deviation2 = orthonormality_deviation2(check.G);
+  // The Gram diagonal is finite iff every entry of R is.
+  check.finite = L::is_finite(check.G(0, 0) + check.G(1, 1) + check.G(2, 2));
+  constexpr T tol = T(limits::kInitTolerance);
+  const typename L::Mask rotation =
+      L::mask_and(L::lt(check.deviation2, V(tol * tol)), L::gt(determinant(R), V(0)));
+  check.bad = L::mask_and(check.finite, L::mask_not(rotation));
+  return check;
+}
+
+// The warm start at the compute dtype's precision: lanes whose deviation is at
+// or above `clean` (a rotation of lower precision, e.g. fitted in float32 and
+// fed to a float64 fit) take Newton-Schulz steps until it is below (each
+// takes a deviation d to ~(3/4) d^2; limits::kInitCleanSteps suffice from the
+// acceptance tolerance). Other lanes are returned unchanged, so the result of
+// a lane does not depend on its block.
+template <typename L>
+inline Mat3<typename L::V> clean_warm_start(const Mat3<typename L::V>& R0, const WarmStartCheck<L>& check,
+                                           typename L::Scalar clean) {
+  using V = typename L::V;
+  const V clean2(clean * clean);
+  typename L::Mask rough =
+      L::mask_and(L::mask_and(check.finite, L::mask_not(check.bad)), L::mask_not(L::lt(check.deviation2, clean2)));
+  Mat3<V> R = R0;
+  Mat3<V> G = check.G;
+  for (int k = 0; k < limits::kInitCleanSteps && L::any(rough); ++k) {
+    R = select<L>(rough, reorthonormalize(R, G), R);
+    G = gram(R);
+    rough = L::mask_and(rough, L::mask_not(L::lt(orthonormality_deviation2(G), clean2)));
+  }
+  return R;
 }
 
 }  // namespace

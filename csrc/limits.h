@@ -1,0 +1,59 @@
+// Every limit, default and tolerance of torchrot, defined once. The kernels
+// (kernel/fit_rotation_impl.h), the operator checks and schemas (ops.cpp) read
+// them here; Python reads them through torchrot._C.constants() (module.cpp),
+// so the fake kernels, the argument checks and the pure-PyTorch path
+// (torchrot/_limits.py, torchrot/reference.py) cannot drift from the kernel.
+// Nothing here depends on the instruction set.
+#pragma once
+
+#include <cstdint>
+
+// Default damping of the derivative, as a literal so that the operator
+// schemas (ops.cpp) can spell it: lambda = gradient_eps |M|_F (see
+// kernel/rotation_gradient.h).
+#define TORCHROT_DEFAULT_GRADIENT_EPS 1e-6
+
+namespace torchrot {
+namespace limits {
+
+constexpr double kDefaultGradientEps = TORCHROT_DEFAULT_GRADIENT_EPS;
+
+// Largest damping accepted: beyond it the derivative is ~0 anyway, and the
+// kernel's eps^4 terms would overflow float (NaN gradients from 1e10 on).
+constexpr double kMaxGradientEps = 1e3;
+
+// Largest step count accepted: more steps never help (max_iter=None converges
+// with a guaranteed fallback), and on flat problems (rank-1 M) a lane can step
+// without converging until its cap, which made huge values hang.
+constexpr int64_t kMaxIter = 1000;
+
+// A warm start is accepted when |R^T R - I|_F < kInitTolerance and det R > 0,
+// whatever the compute dtype: a rotation rounded to bfloat16 (unit roundoff
+// u = 2^-8) deviates by at most ~2 sqrt(3) u = 1.4e-2 (measured on 1e6 random
+// rotations: 9.3e-3; float16: 1.1e-3, float32: 1.4e-7), so rotations from any
+// floating dtype are accepted, cast up or down; a matrix further off is not a
+// rotation at any precision torch offers.
+constexpr double kInitTolerance = 5e-2;
+
+// Below this deviation a warm start is used as it is: the Newton-Schulz step
+// of every result (kernel::finish) takes its error d to ~(3/4) d^2, which is
+// at the compute dtype's precision. Accepted warm starts above it (e.g. a
+// float32 rotation fed to a float64 fit) first take Newton-Schulz steps
+// until below it (at most kInitCleanSteps: 5e-2 -> 1.9e-3 -> 2.7e-6 -> 5e-12).
+constexpr double kInitCleanFloat = 1e-4;
+constexpr double kInitCleanDouble = 1e-7;
+constexpr int kInitCleanSteps = 4;
+
+// Converged mode (max_iter=None), see kernel::Tolerances: Cayley steps per
+// start or saddle escape before the fallback decides, saddle escapes allowed,
+// steps the Gershgorin estimate (Eq. 28) is used for before the conservative
+// one takes over, the step size (tan^2(theta/2)) below which it takes over
+// early, and the slack of the second-order maximum check in units of eps.
+constexpr int kConvergedCap = 12;
+constexpr int kMaxEscapes = 2;
+constexpr int kGershgorinSteps = 2;
+constexpr double kEstimateSwitch = 1e-4;
+constexpr double kMaxCheckSlackEps = 4;
+
+}  // namespace limits
+}  // namespace torchrot
