@@ -52,25 +52,10 @@ def _no_second_derivative(ctx, grad):
     )
 
 
-def _setup_context(ctx, inputs, output):
-    """Saves R and M (and the damping) of fit_rotation(M, init, max_iter, variant, gradient_eps)."""
-    ctx.save_for_backward(output, inputs[0])
-    ctx.gradient_eps = inputs[4] if len(inputs) > 4 else GRADIENT_EPS
-
-
-def _gradients(ctx, grad_R, tangent=rotation_tangent):
-    """dL/dM for the operator's five inputs (no gradient for init and the
-    options). R has M's shape (init broadcasts to M), so dL/dM needs no
-    reduction."""
-    R, M = ctx.saved_tensors
-    grad_M = tangent(grad_R, R, M, ctx.gradient_eps) if ctx.needs_input_grad[0] else None
-    return grad_M, None, None, None, None
-
-
 class _TangentFunction(torch.autograd.Function):
     """rotation_tangent, refusing to be differentiated in either mode, so that
-    second derivatives (e.g. torch.func.hessian, forward over reverse) raise
-    instead of silently coming out as zeros."""
+    second derivatives (e.g. torch.func.hessian, jacfwd(jacfwd(...)), forward
+    over reverse) raise instead of silently coming out as zeros."""
 
     generate_vmap_rule = True
 
@@ -86,34 +71,80 @@ class _TangentFunction(torch.autograd.Function):
     jvp = staticmethod(lambda ctx, *tangents: _no_second_derivative(ctx, tangents))
 
 
-class FitRotationFunction(torch.autograd.Function):
-    """R = fit_rotation(M, init, max_iter, variant) with its derivatives in M.
+def _tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: float) -> torch.Tensor:
+    """rotation_tangent inside a derivative rule, where it must never be
+    differentiated again.
 
-    ``apply(M, init, max_iter, variant, gradient_eps)``; see the module
-    docstring for the formula. ``init`` receives no gradient.
+    Outside torch.func, the operator's Autograd kernel applies
+    _TangentFunction itself wherever a derivative would be recorded
+    (create_graph=True, reverse over forward). Under torch.func, a backward
+    run by the transform's autograd call applies _TangentFunction at every
+    level. A jvp rule, though, runs inside the operator's Autograd kernel at
+    one level with both modes off, where neither the Function nor the
+    operator reaches the levels outside it (forward over forward came out
+    as zeros): if the tensors depend on such a differentiating level, raise.
+    """
+    if not torch._C._are_functorch_transforms_active():
+        return rotation_tangent(X, R, M, gradient_eps)
+    if not torch._C._dispatch_tls_is_dispatch_key_excluded(_FUNCTORCH_FRONT):
+        return _TangentFunction.apply(X, R, M, gradient_eps)
+    if _differentiated_outside(torch._C._functorch.peek_interpreter_stack().level(), (X, R, M)):
+        _no_second_derivative(None, None)
+    return rotation_tangent(X, R, M, gradient_eps)
+
+
+_FUNCTORCH_FRONT = torch._C.DispatchKey.FuncTorchDynamicLayerFrontMode
+_DIFFERENTIATING = (torch._C._functorch.TransformType.Grad, torch._C._functorch.TransformType.Jvp)
+
+
+def _differentiated_outside(level: int, tensors) -> bool:
+    """Whether a tensor is wrapped by a torch.func grad/jvp level below ``level``."""
+    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
+
+    outer = {i.level() for i in retrieve_all_functorch_interpreters()
+             if i.key() in _DIFFERENTIATING and i.level() < level}
+    functorch = torch._C._functorch
+    for t in tensors:
+        while functorch.is_gradtrackingtensor(t) or functorch.is_batchedtensor(t):
+            if functorch.maybe_get_level(t) in outer:
+                return True
+            t = functorch.get_unwrapped(t)
+    return False
+
+
+class FitRotationFunction(torch.autograd.Function):
+    """R = fit_rotation(M, init, max_iter, variant, gradient_eps) with its
+    derivatives in M: the operator's Autograd kernel (below).
+
+    See the module docstring for the formula. ``init`` receives no gradient;
+    R has M's shape (init broadcasts to M), so dL/dM needs no reduction.
     """
 
     generate_vmap_rule = True
 
     @staticmethod
     def forward(M, init, max_iter, variant, gradient_eps):
+        # Both derivative modes are off here: the operator runs below autograd.
         return torch.ops.torchrot.fit_rotation(M, init, max_iter, variant, gradient_eps)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        _setup_context(ctx, inputs, output)
+        ctx.save_for_backward(output, inputs[0])
         ctx.save_for_forward(output, inputs[0])
+        ctx.gradient_eps = inputs[4]
 
     @staticmethod
     def backward(ctx, grad_R):
-        return _gradients(ctx, grad_R, _TangentFunction.apply)
+        R, M = ctx.saved_tensors
+        grad_M = _tangent(grad_R, R, M, ctx.gradient_eps) if ctx.needs_input_grad[0] else None
+        return grad_M, None, None, None, None
 
     @staticmethod
     def jvp(ctx, dM, _dinit, _max_iter, _variant, _gradient_eps):
         R, M = ctx.saved_tensors
-        if dM is None:
+        if dM is None:  # only init carries a tangent
             return torch.zeros_like(R)
-        return rotation_tangent(dM, R, M, ctx.gradient_eps)
+        return _tangent(dM, R, M, ctx.gradient_eps)
 
 
 # ---- autograd of the operators themselves (torch.ops.torchrot.*) ----

@@ -244,14 +244,12 @@ def _fit_rotation_info_fake(M, init=None, max_iter=None, variant="conservative")
 # ---- pure-PyTorch kernels for devices without a native one ----
 
 
-@torch.library.register_kernel("torchrot::fit_rotation", _OTHER_DEVICES)
 def _fit_rotation_other(M, init=None, max_iter=None, variant="conservative", gradient_eps=GRADIENT_EPS):
     check_all(M, init, max_iter, variant)  # in the C++ operator's order
     check_gradient_eps(gradient_eps)
     return fit_rotation_reference(M, init, max_iter=max_iter, variant=variant)
 
 
-@torch.library.register_kernel("torchrot::fit_rotation_out", _OTHER_DEVICES)
 def _fit_rotation_out_other(M, init, max_iter, variant, out):
     check_all(M, init, max_iter, variant)
     check_out(M, out)
@@ -260,11 +258,21 @@ def _fit_rotation_out_other(M, init, max_iter, variant, out):
     out.copy_(fit_rotation_reference(M, init, max_iter=max_iter, variant=variant))
 
 
-@torch.library.register_kernel("torchrot::fit_rotation_backward", _OTHER_DEVICES)
 def _fit_rotation_backward_other(grad, R, M, gradient_eps=GRADIENT_EPS):
     return fit_rotation_backward_reference(grad, R, M, gradient_eps)
 
 
-@torch.library.register_kernel("torchrot::fit_rotation_info", _OTHER_DEVICES)
 def _fit_rotation_info_other(M, init=None, max_iter=None, variant="conservative"):
     return fit_rotation_reference(M, init, max_iter=max_iter, variant=variant, return_info=True)
+
+
+#: operator name -> its device-generic kernel (torchrot.testing.generic_kernel
+#: also runs them on CPU tensors).
+GENERIC_KERNELS = {
+    "fit_rotation": _fit_rotation_other,
+    "fit_rotation_out": _fit_rotation_out_other,
+    "fit_rotation_backward": _fit_rotation_backward_other,
+    "fit_rotation_info": _fit_rotation_info_other,
+}
+for _name, _kernel in GENERIC_KERNELS.items():
+    torch.library.register_kernel(f"torchrot::{_name}", _OTHER_DEVICES, _kernel)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import warnings
 from typing import Callable, Iterator
 
 import torch
@@ -41,6 +42,29 @@ def cpu_kernel(name: str | None) -> Iterator[str]:
         yield torch.ops.torchrot.cpu_kernel()
     finally:
         torch.ops.torchrot._set_cpu_kernel(previous)
+
+
+@contextlib.contextmanager
+def generic_kernel() -> Iterator[None]:
+    """``with generic_kernel(): ...`` runs ``torch.ops.torchrot.*`` on CPU
+    tensors with the device-generic kernels (pure PyTorch, what CUDA, XPU and
+    MPS tensors run) instead of the C++ ones, so that the same tests check
+    both paths on any machine. Process-wide while it lasts (it registers
+    CPU kernels that shadow the C++ ones; leaving restores them): not for
+    multi-threaded use.
+    """
+    from torchrot._ops import GENERIC_KERNELS
+
+    library = torch.library.Library("torchrot", "IMPL")
+    try:
+        with warnings.catch_warnings():
+            # "Overriding a previously registered kernel": that is the point.
+            warnings.filterwarnings("ignore", message=".*(Overriding a previously registered kernel|operators may also be overridden)")
+            for name, kernel in GENERIC_KERNELS.items():
+                library.impl(name, kernel, "CPU")
+        yield
+    finally:
+        library._destroy()
 
 
 def random_rotations(

@@ -1,0 +1,404 @@
+"""torch.func transforms of fit_rotation, the operator, rigid_registration and
+the nn modules: in eager and under torch.compile (with and without
+fullgraph=True), on the CPU kernel and on the device-generic path (the
+pure-PyTorch kernels that torchrot/_ops.py registers for other devices, here
+registered for CPU by :func:`python_kernels_on_cpu`).
+
+Every cell of the matrix must give the eager CPU answer: eager on the CPU
+kernel is checked against central differences, every other cell against
+eager on the CPU kernel (float64, rtol 1e-9, atol 1e-10). Compiled cells also
+check that the operator was captured in a single graph (no graph break).
+Second derivatives raise, in eager and compiled.
+
+The compile backend is ``aot_eager`` (dynamo and AOTAutograd, where the
+transforms are traced; inductor only lowers the resulting graph, and costs
+seconds a graph); ``TORCHROT_TEST_COMPILE_BACKEND=inductor`` runs the matrix
+with inductor, and the issue's two examples always run with the default
+backend.
+"""
+from __future__ import annotations
+
+import collections
+import contextlib
+import os
+import warnings
+
+import pytest
+import torch
+import torch.autograd.forward_ad as fwAD
+from torch._dynamo.backends.registry import lookup_backend
+from torch.func import grad, hessian, jacfwd, jacrev, jvp, vjp, vmap
+
+import torchrot
+from torchrot.nn import RigidRegistration, RotationFit
+
+BACKEND = os.environ.get("TORCHROT_TEST_COMPILE_BACKEND", "aot_eager")
+OPERATORS = ("fit_rotation", "fit_rotation_out", "fit_rotation_backward", "fit_rotation_info")
+SECOND_DERIVATIVE = "second derivatives are not implemented"
+
+
+# ---------------------------------------------------------------------------
+# The device-generic path on CPU
+# ---------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def python_kernels_on_cpu():
+    """Runs torch.ops.torchrot.* on CPU tensors through the pure-PyTorch
+    kernels registered for the other devices (torchrot/_ops.py), instead of
+    the C++ CPU kernels; yields a Counter of the calls per operator.
+
+    The CPU registration forwards to the kernel registered for CUDA (the
+    dispatcher keeps it even in a CPU-only build), so it runs exactly the
+    registered function. Leaving the block destroys the registration and the
+    dispatcher restores the C++ kernel.
+    """
+    calls = collections.Counter()
+    cuda = torch._C.DispatchKeySet(torch._C.DispatchKey.CUDA)
+
+    def forward_to_cuda_kernel(name):
+        op = getattr(torch.ops.torchrot, name).default
+
+        @torch._disable_dynamo
+        def kernel(*args):
+            calls[name] += 1
+            return op.redispatch(cuda, *args)
+
+        return kernel
+
+    lib = torch.library.Library("torchrot", "IMPL")
+    try:
+        with warnings.catch_warnings():
+            # "Overriding a previously registered kernel": that is the point.
+            warnings.filterwarnings("ignore", "Warning only once for all operators")
+            for name in OPERATORS:
+                lib.impl(name, forward_to_cuda_kernel(name), "CPU")
+        yield calls
+    finally:
+        lib._destroy()
+
+
+def test_python_kernels_on_cpu_runs_the_reference_and_restores(monkeypatch):
+    M = torch.randn(4, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    G = torch.ones_like(M)
+    loss_grad = grad(lambda m: (torchrot.fit_rotation(m) * G).sum())
+    native_R, native_grad = torch.ops.torchrot.fit_rotation(M), loss_grad(M)
+    reference = collections.Counter()
+    for name in ("fit_rotation_reference", "fit_rotation_backward_reference"):
+        def counting(*args, _name=name, _function=getattr(torchrot._ops, name), **kwargs):
+            reference[_name] += 1
+            return _function(*args, **kwargs)
+        monkeypatch.setattr(torchrot._ops, name, counting)
+
+    with python_kernels_on_cpu() as calls:
+        R = torch.ops.torchrot.fit_rotation(M)
+        g = loss_grad(M)
+        out = torchrot.fit_rotation(M, out=torch.empty_like(M))
+        info = torchrot.fit_rotation_info(M)
+    assert calls == {name: 2 if name == "fit_rotation" else 1 for name in OPERATORS}
+    assert reference == {"fit_rotation_reference": 4, "fit_rotation_backward_reference": 1}
+    torch.testing.assert_close(R, native_R, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(g, native_grad, rtol=1e-9, atol=1e-10)
+    assert torch.equal(out, R) and torch.equal(info.R, R)
+
+    reference.clear()
+    assert torch.equal(torch.ops.torchrot.fit_rotation(M), native_R)  # the C++ kernel is back
+    assert torch.equal(loss_grad(M), native_grad)
+    assert not reference and sum(calls.values()) == 5
+
+
+# ---------------------------------------------------------------------------
+# Functions under test: P (the differentiated input), constants C -> tuple of outputs
+# ---------------------------------------------------------------------------
+
+_rotation_fit = RotationFit()
+_rigid_registration = RigidRegistration()  # scale=False: s is a constant output
+
+
+TARGETS = {
+    "fit_rotation": lambda P: (torchrot.fit_rotation(P),),
+    "op": lambda P: (torch.ops.torchrot.fit_rotation(P),),
+    "RotationFit": lambda P: (_rotation_fit(P),),
+    "rigid_registration": lambda x, y, w: tuple(torchrot.rigid_registration(x, y, w, scale=True)),
+    "RigidRegistration": lambda x, y: tuple(_rigid_registration(x, y)),
+}
+
+
+def _inputs(target: str, name: str):
+    """(P, C): float64, batch 4."""
+    gen = torch.Generator().manual_seed(7)
+    if target in ("rigid_registration", "RigidRegistration"):
+        x = torch.randn(4, 5, 3, generator=gen, dtype=torch.float64)
+        R = torchrot.fit_rotation(torch.randn(4, 3, 3, generator=gen, dtype=torch.float64))
+        y = 1.3 * x @ R.mT + 0.1 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
+        w = torch.rand(4, 5, generator=gen, dtype=torch.float64) + 0.5
+        return x, ((y, w) if target == "rigid_registration" else (y,))
+    if name == "identity":
+        M = torch.eye(3, dtype=torch.float64).repeat(4, 1, 1)
+    else:
+        M = torch.randn(4, 3, 3, generator=gen, dtype=torch.float64)
+    return (M.reshape(4, 9) if target == "RotationFit" else M), ()
+
+
+def _directions(P, outputs):
+    gen = torch.Generator().manual_seed(11)
+    dP = torch.randn(P.shape, generator=gen, dtype=P.dtype)
+    Gs = tuple(torch.randn(o.shape, generator=gen, dtype=o.dtype) for o in outputs)
+    return dP, Gs
+
+
+def _loss(outputs, Gs):
+    return sum((o * g).sum() for o, g in zip(outputs, Gs))
+
+
+# ---------------------------------------------------------------------------
+# Transforms: body(f) is what torch.compile compiles, call(fn, ...) runs it
+# ---------------------------------------------------------------------------
+
+
+def _call(fn, P, dP, Gs, C):
+    return fn(P, dP, Gs, C)
+
+
+def _call_backward(fn, P, dP, Gs, C):
+    P = P.detach().requires_grad_()
+    fn(P, dP, Gs, C).backward()
+    return P.grad
+
+
+def _tangents_or_zeros(outputs):
+    return tuple(torch.zeros_like(o) if t is None else t
+                 for o, t in ((o, fwAD.unpack_dual(o).tangent) for o in outputs))
+
+
+def _forward_ad(f):
+    def body(P, dP, Gs, C):
+        with fwAD.dual_level():
+            return _tangents_or_zeros(f(fwAD.make_dual(P, dP), *C))
+    return body
+
+
+TRANSFORMS = {
+    "grad": lambda f: lambda P, dP, Gs, C: grad(lambda p: _loss(f(p, *C), Gs))(P),
+    "vjp": lambda f: lambda P, dP, Gs, C: vjp(lambda p: f(p, *C), P)[1](Gs)[0],
+    "jvp": lambda f: lambda P, dP, Gs, C: jvp(lambda p: f(p, *C), (P,), (dP,)),
+    "jacrev": lambda f: lambda P, dP, Gs, C: jacrev(lambda p: f(p, *C))(P),
+    "jacfwd": lambda f: lambda P, dP, Gs, C: jacfwd(lambda p: f(p, *C))(P),
+    "vmap": lambda f: lambda P, dP, Gs, C: vmap(f)(P, *C),
+    "vmap_grad": lambda f: lambda P, dP, Gs, C: vmap(grad(lambda p, g, *c: _loss(f(p, *c), g)))(P, Gs, *C),
+    "vmap_jvp": lambda f: lambda P, dP, Gs, C: vmap(
+        lambda p, dp, *c: jvp(lambda q: f(q, *c), (p,), (dp,))[1])(P, dP, *C),
+    "grad_vmap": lambda f: lambda P, dP, Gs, C: grad(lambda p: _loss(vmap(f)(p, *C), Gs))(P),
+    "backward": lambda f: lambda P, dP, Gs, C: _loss(f(P, *C), Gs),
+    "forward_ad": _forward_ad,
+}
+CALLS = {"backward": _call_backward}
+
+
+def _run(transform, fn, P, dP, Gs, C):
+    return CALLS.get(transform, _call)(fn, P, dP, Gs, C)
+
+
+# ---------------------------------------------------------------------------
+# References: central differences, eager on the CPU kernel
+# ---------------------------------------------------------------------------
+
+
+def _central_jacobians(f, P, C, h=1e-6):
+    """d outputs / dP by central differences, each ``output.shape + P.shape``
+    (all perturbations in one batched call: every target broadcasts C)."""
+    n = P.numel()
+    E = (h * torch.eye(n, dtype=P.dtype)).reshape(n, *P.shape)
+    plus, minus = f(P + E, *C), f(P - E, *C)
+    return tuple(((p - m) / (2 * h)).movedim(0, -1).reshape(*p.shape[1:], *P.shape)
+                 for p, m in zip(plus, minus))
+
+
+def _finite_difference_reference(transform, f, P, dP, Gs, C):
+    outputs = f(P, *C)
+    if transform == "vmap":
+        return outputs
+    J = _central_jacobians(f, P, C)
+    gradient = sum(torch.tensordot(g, j, dims=g.dim()) for g, j in zip(Gs, J))
+    tangents = tuple(torch.tensordot(j, dP, dims=P.dim()) for j in J)
+    return {
+        "grad": gradient, "vjp": gradient, "vmap_grad": gradient, "grad_vmap": gradient, "backward": gradient,
+        "jvp": (outputs, tangents), "vmap_jvp": tangents, "forward_ad": tangents,
+        "jacrev": J, "jacfwd": J,
+    }[transform]
+
+
+_eager_cpu_cache = {}
+
+
+def _eager_cpu(target, name, transform):
+    key = (target, name, transform)
+    if key not in _eager_cpu_cache:
+        f = TARGETS[target]
+        P, C = _inputs(target, name)
+        dP, Gs = _directions(P, f(P, *C))
+        _eager_cpu_cache[key] = _run(transform, TRANSFORMS[transform](f), P, dP, Gs, C)
+    return _eager_cpu_cache[key]
+
+
+# ---------------------------------------------------------------------------
+# Compiled functions, shared by the cells of one (target, transform, mode)
+# ---------------------------------------------------------------------------
+
+
+class _RecordingBackend:
+    """The compile backend, recording each graph dynamo hands it."""
+
+    def __init__(self):
+        self.graphs = []
+
+    def __call__(self, gm, example_inputs):
+        self.graphs.append({str(node.target) for node in gm.graph.nodes if node.op == "call_function"})
+        return lookup_backend(BACKEND)(gm, example_inputs)
+
+
+_compiled = {}
+
+
+def _compiled_function(target, transform, fullgraph):
+    """One compiled function per (target, transform, mode); the matrix runs
+    its inputs and paths consecutively. A new one resets dynamo, so the
+    bodies (closures sharing code objects) never reach the recompile limit
+    and fall back to eager unnoticed."""
+    key = (target, transform, fullgraph)
+    if key not in _compiled:
+        _compiled.clear()
+        torch._dynamo.reset()
+        backend = _RecordingBackend()
+        body = TRANSFORMS[transform](TARGETS[target])
+        _compiled[key] = torch.compile(body, backend=backend, fullgraph=fullgraph), backend
+    return _compiled[key]
+
+
+# ---------------------------------------------------------------------------
+# The matrix
+# ---------------------------------------------------------------------------
+
+TARGET_INPUTS = (
+    ("fit_rotation", "gaussian"), ("fit_rotation", "identity"), ("op", "gaussian"), ("RotationFit", "gaussian"),
+    ("rigid_registration", "points"), ("RigidRegistration", "points"),
+)
+MODES = ("eager", "compile", "fullgraph")
+PATHS = ("cpu", "generic")
+# Ordered so that each compiled function serves its cells one after another.
+CASES = [
+    pytest.param(target, name, transform, mode, path, id=f"{target}-{name}-{transform}-{mode}-{path}")
+    for target in TARGETS for transform in TRANSFORMS for mode in MODES
+    for t, name in TARGET_INPUTS if t == target for path in PATHS
+]
+# Silently wrong or raising before the operator's Autograd kernel covered
+# forward AD and torch.func (each was a bug under torch.compile; "op" also in eager).
+DERIVATIVE_FREE = ("vmap",)
+
+
+@pytest.mark.parametrize("target, name, transform, mode, path", CASES)
+def test_transform_matrix(target, name, transform, mode, path):
+    f = TARGETS[target]
+    P, C = _inputs(target, name)
+    dP, Gs = _directions(P, f(P, *C))
+    expected = _eager_cpu(target, name, transform)  # computed outside python_kernels_on_cpu
+
+    if mode == "eager":
+        fn, backend = TRANSFORMS[transform](f), None
+    else:
+        fn, backend = _compiled_function(target, transform, fullgraph=mode == "fullgraph")
+    context = python_kernels_on_cpu() if path == "generic" else contextlib.nullcontext(collections.Counter())
+    with context as calls:
+        got = _run(transform, fn, P, dP, Gs, C)
+
+    if mode == "eager" and path == "cpu":
+        reference = _finite_difference_reference(transform, f, P, dP, Gs, C)
+        torch.testing.assert_close(got, reference, rtol=1e-6, atol=1e-7)
+    else:
+        torch.testing.assert_close(got, expected, rtol=1e-9, atol=1e-10)
+    if path == "generic":
+        assert calls["fit_rotation"] > 0
+        assert (calls["fit_rotation_backward"] > 0) == (transform not in DERIVATIVE_FREE)
+    if backend is not None:
+        # Fully captured: one graph, holding the operator (a graph break
+        # would have left the transform to eager).
+        assert len(backend.graphs) == 1, f"{len(backend.graphs)} graphs"
+        assert any(op.startswith("torchrot.fit_rotation.") for op in backend.graphs[0]), backend.graphs[0]
+
+
+# ---------------------------------------------------------------------------
+# The issue's examples, with the default backend (inductor)
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["identity", "gaussian"])
+def test_issue_examples_default_backend(name):
+    torch._dynamo.reset()
+    M, _ = _inputs("fit_rotation", name)
+    dM, (G,) = _directions(M, (M,))
+    tangent = lambda M, dM: jvp(torchrot.fit_rotation, (M,), (dM,))[1]  # noqa: E731
+    gradient = lambda M, G: grad(lambda m: (torchrot.fit_rotation(m) * G).sum())(M)  # noqa: E731
+    (J,) = _central_jacobians(lambda P: (torchrot.fit_rotation(P),), M, ())
+    torch.testing.assert_close(tangent(M, dM), torch.tensordot(J, dM, dims=3), rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(gradient(M, G), torch.tensordot(G, J, dims=3), rtol=1e-6, atol=1e-7)
+    for fullgraph in (False, True):
+        torch.testing.assert_close(torch.compile(tangent, fullgraph=fullgraph)(M, dM), tangent(M, dM),
+                                   rtol=1e-9, atol=1e-10)
+        torch.testing.assert_close(torch.compile(gradient, fullgraph=fullgraph)(M, G), gradient(M, G),
+                                   rtol=1e-9, atol=1e-10)
+
+
+# ---------------------------------------------------------------------------
+# Second derivatives raise, in every mode
+# ---------------------------------------------------------------------------
+
+
+def _double_backward(m):
+    m = m.detach().requires_grad_()
+    (g,) = torch.autograd.grad(torchrot.fit_rotation(m).sum(), m, create_graph=True)
+    return torch.autograd.grad(g.sum(), m)[0]
+
+
+SECOND_ORDER = {
+    "hessian": lambda m: hessian(lambda x: torchrot.fit_rotation(x).sum())(m),
+    "jacrev_jacrev": lambda m: jacrev(jacrev(torchrot.fit_rotation))(m),
+    "jacfwd_jacfwd": lambda m: jacfwd(jacfwd(torchrot.fit_rotation))(m),  # was silently 0
+    "jacrev_jacfwd": lambda m: jacrev(jacfwd(torchrot.fit_rotation))(m),
+    "jvp_jvp": lambda m: jvp(lambda x: jvp(torchrot.fit_rotation, (x,), (m,))[1], (m,), (m,))[1],  # was 0
+    "op_jacfwd_jacfwd": lambda m: jacfwd(jacfwd(lambda x: torch.ops.torchrot.fit_rotation(x)))(m),
+    "grad_grad": lambda m: grad(lambda x: grad(lambda y: torchrot.fit_rotation(y).sum())(x).sum())(m),
+    "double_backward": _double_backward,
+}
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("case", SECOND_ORDER)
+def test_second_derivatives_raise(case, mode):
+    M, _ = _inputs("fit_rotation", "gaussian")
+    fn = SECOND_ORDER[case]
+    if mode != "eager":
+        torch._dynamo.reset()
+        fn = torch.compile(fn, backend=BACKEND, fullgraph=mode == "fullgraph")
+    if case == "double_backward" and mode != "eager":
+        # torch.autograd.grad inside a compiled function is not traceable;
+        # with fullgraph=False it runs in eager and raises as there.
+        message = "autograd.grad" if mode == "fullgraph" else SECOND_DERIVATIVE
+        with pytest.raises((RuntimeError, torch._dynamo.exc.Unsupported), match=message):
+            fn(M[0])
+        return
+    with pytest.raises(RuntimeError, match=SECOND_DERIVATIVE):
+        fn(M[0])
+
+
+def test_compiled_double_backward_raises():
+    """A first-order gradient with create_graph=True through a compiled
+    function is fine; differentiating it again raises (AOTAutograd's own
+    refusal of double backward)."""
+    torch._dynamo.reset()
+    M, _ = _inputs("fit_rotation", "gaussian")
+    M.requires_grad_()
+    loss = torch.compile(lambda m: torchrot.fit_rotation(m).sum(), backend=BACKEND, fullgraph=True)(M)
+    (g,) = torch.autograd.grad(loss, M, create_graph=True)
+    torch.testing.assert_close(g, grad(lambda m: torchrot.fit_rotation(m).sum())(M.detach()), rtol=1e-9, atol=1e-10)
+    with pytest.raises(RuntimeError, match="double backward"):
+        g.sum().backward()

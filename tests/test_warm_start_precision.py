@@ -1,0 +1,105 @@
+"""Warm starts across precisions: a rotation rounded to any float dtype (fitted
+in float32 and cast to float64, cast up from float16/bfloat16, ...) is
+accepted as a warm start of a fit in any dtype, brought to the compute dtype's
+precision, and gives rotations at that precision and the same optimum; only
+what is clearly not a rotation (det <= 0, |R^T R - I|_F >= INIT_TOLERANCE) is
+rejected, with a message that says what to do. Both the C++ kernel and the
+device-generic kernel.
+
+Convention: R (det +1) maximises tr(R^T M); column vectors.
+"""
+from __future__ import annotations
+
+import contextlib
+
+import pytest
+import torch
+
+import torchrot
+from torchrot._limits import INIT_TOLERANCE
+from torchrot.testing import CRITERIA, generic_kernel, make_matrices, random_rotations, rotation_errors
+
+LOW = (torch.float32, torch.float16, torch.bfloat16)
+KERNELS = {"cpu": contextlib.nullcontext, "generic": generic_kernel}
+N = 20_000  # per call on the C++ kernel; the generic kernel (batched PyTorch) gets N_GENERIC
+N_GENERIC = 1000
+
+
+def _assert_rotations_at_precision(R, M, dtype, what):
+    errors = rotation_errors(R, M)
+    for metric in ("orthonormality", "det", "shortfall"):
+        worst = errors[metric].max().item()
+        assert worst <= CRITERIA[dtype][metric], f"{what}: {metric} {worst:.3g} > {CRITERIA[dtype][metric]:g}"
+
+
+def _low_precision_warm_starts(low, dtype, n=N):
+    """M (dtype) and the previous rotations fitted in `low` (float32 fits of
+    M rounded to `low`), cast to dtype: the rotations a solver that changed
+    precision hands over."""
+    M = make_matrices("warm", n, 31, torch.float64)
+    R_low = torchrot.fit_rotation(M.float()).to(low)
+    return M.to(dtype), R_low.to(dtype)
+
+
+@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("low", LOW, ids=str)
+@pytest.mark.parametrize("max_iter", [None, 1])
+def test_lower_precision_rotations_accepted(low, max_iter, kernel, dtype):
+    if torch.finfo(low).eps < torch.finfo(dtype).eps:
+        pytest.skip("not a lower precision")
+    M, init = _low_precision_warm_starts(low, dtype, N if kernel == "cpu" else N_GENERIC)
+    with KERNELS[kernel]():
+        R = torchrot.fit_rotation(M, init, max_iter=max_iter)
+    if max_iter is None:  # converged: rotations at dtype's precision, the optimum
+        _assert_rotations_at_precision(R, M, dtype, f"{low} warm start")
+    else:  # one step: a rotation at dtype's precision (the step itself is not exact)
+        errors = rotation_errors(R, M)
+        assert errors["orthonormality"].max() <= CRITERIA[dtype]["orthonormality"]
+        assert errors["det"].max() <= CRITERIA[dtype]["det"]
+
+
+def test_issue_case_float32_fits_as_float64_warm_start():
+    """200,000 float32 fits cast to float64: all accepted (150,591 raised before)."""
+    M = torch.randn(200_000, 3, 3, generator=torch.Generator().manual_seed(0))
+    R32 = torchrot.fit_rotation(M)
+    R = torchrot.fit_rotation(M.double(), init=R32.double())
+    _assert_rotations_at_precision(R, M.double(), torch.float64, "float32 fits as float64 warm starts")
+    # the same optimum as the cold float64 fit
+    cold = torchrot.fit_rotation(M.double())
+    gap = (rotation_errors(R, M.double())["shortfall"] - rotation_errors(cold, M.double())["shortfall"]).abs()
+    assert gap.max() <= CRITERIA[torch.float64]["shortfall"]
+
+
+def test_repeated_one_step_updates_do_not_drift():
+    """Results fed back as the next warm start stay rotations at full precision."""
+    M = make_matrices("warm", 2000, 32, torch.float64)
+    R = torchrot.fit_rotation(M.float()).to(torch.bfloat16).double()
+    for _ in range(5):
+        torchrot.fit_rotation(M, R, max_iter=1, out=R)
+    errors = rotation_errors(R, M)
+    assert errors["orthonormality"].max() <= CRITERIA[torch.float64]["orthonormality"]
+
+
+def _not_rotations(dtype):
+    R = random_rotations(6, torch.Generator().manual_seed(33)).to(dtype)
+    reflection = R.clone()
+    reflection[0, :, 0] *= -1  # det -1, orthonormal
+    scaled = 1.1 * R[1]  # |R^T R - I|_F = 0.21 * sqrt(3)
+    skewed = R[2] + 0.05  # far from orthonormal
+    zero = torch.zeros(3, 3, dtype=dtype)
+    return {"reflection": reflection[0], "scaled": scaled, "skewed": skewed, "zero": zero}
+
+
+@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("case", ["reflection", "scaled", "skewed", "zero"])
+def test_clearly_not_rotations_rejected(case, kernel, dtype):
+    bad = _not_rotations(dtype)[case]
+    eye = torch.eye(3, dtype=torch.float64)
+    deviation = (bad.double().mT @ bad.double() - eye).norm().item()
+    assert deviation >= INIT_TOLERANCE or torch.linalg.det(bad.double()) <= 0  # the case is what it says
+    M = make_matrices("warm", 8, 34, torch.float64).to(dtype)
+    init = random_rotations(8, torch.Generator().manual_seed(35)).to(dtype)
+    init[3] = bad
+    with KERNELS[kernel]():
+        with pytest.raises(ValueError, match=r"init must hold rotations .* 1 of 8 are not: pass rotations, or no init"):
+            torchrot.fit_rotation(M, init)
