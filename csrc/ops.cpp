@@ -84,7 +84,10 @@ at::Tensor checked_init(const at::Tensor& M, const std::optional<at::Tensor>& in
   check_matrix_arg(M, "M");
   if (!init.has_value() || !init->defined()) return at::Tensor();
   check_matrix_arg(*init, "init");
-  check_like(*init, "init", M, "M");
+  // any float dtype: a warm start of another precision is cast to M's
+  // compute dtype (and cleaned up to it, kernel::clean_warm_start)
+  TORCH_CHECK_VALUE(init->device() == M.device(), kOpName, ": init must be on M's device (", M.device(), "), got ",
+                    init->device());
   const auto m_batch = M.sizes().slice(0, M.dim() - 2);
   const auto init_batch = init->sizes().slice(0, init->dim() - 2);
   TORCH_CHECK_VALUE(at::is_expandable_to(init_batch, m_batch), kOpName, ": init of shape ", init->sizes(),
@@ -185,11 +188,16 @@ MatrixBatch contiguous_view(const at::Tensor& contiguous) {
   return view;
 }
 
+// The dtype the kernels compute a tensor of dtype `t` in: float32 for
+// float16 and bfloat16.
+at::ScalarType compute_dtype(at::ScalarType t) { return t == at::kHalf || t == at::kBFloat16 ? at::kFloat : t; }
+
 // (N, 3, 3) view of `t` broadcast to `shape` (its geometry, no copy), or of a
-// contiguous compute-dtype copy kept in `keep`.
-MatrixBatch broadcast_view(const at::Tensor& t, at::IntArrayRef shape, int64_t n, bool reduced,
-                           at::ScalarType compute, at::Tensor& keep) {
-  if (!reduced) {
+// contiguous copy in the `compute` dtype kept in `keep` (for another dtype, or
+// a batch that cannot be flattened).
+MatrixBatch broadcast_view(const at::Tensor& t, at::IntArrayRef shape, int64_t n, at::ScalarType compute,
+                           at::Tensor& keep) {
+  if (t.scalar_type() == compute) {
     const auto geometry = at::inferExpandGeometry_dimvector(t.sizes(), t.strides(), shape);
     if (auto view = batch_view(t, geometry.sizes, geometry.strides, n)) return *view;
   }
@@ -197,16 +205,29 @@ MatrixBatch broadcast_view(const at::Tensor& t, at::IntArrayRef shape, int64_t n
   return contiguous_view(keep);
 }
 
+// The warm starts of `init` (any shape (..., 3, 3)) that are not rotations:
+// the validation pass fit_rotation_out makes before writing, exposed so that
+// the benchmark can time it (benchmarks/atomic_cost.py).
+// The check is made in `compute`, the dtype of the fit: the values the fit
+// checks itself.
+int64_t count_bad_warm_starts(const at::Tensor& init, at::ScalarType compute) {
+  const int64_t n = init.numel() / 9;
+  if (n == 0) return 0;
+  at::Tensor keep;
+  return count_bad_warm_starts_cpu(compute, n, broadcast_view(init, init.sizes(), n, compute, keep));
+}
+
+int64_t count_bad_warm_starts_op(const at::Tensor& init) {
+  check_matrix_arg(init, "init");
+  return count_bad_warm_starts(init, compute_dtype(init.scalar_type()));
+}
+
 // Raises (ValueError) if a warm start of `init`, taken in its own shape
 // (not broadcast), is not a rotation: run before anything is written, so that
 // a call that raises leaves the caller's out as it was.
-void check_warm_starts(const at::Tensor& init, at::ScalarType compute, bool reduced) {
-  const int64_t n = init.numel() / 9;
-  if (n == 0) return;
-  at::Tensor keep;
-  const MatrixBatch view = broadcast_view(init, init.sizes(), n, reduced, compute, keep);
-  const int64_t bad = count_bad_warm_starts_cpu(compute, n, view);
-  if (bad != 0) throw_bad_init(bad, n);
+void check_warm_starts(const at::Tensor& init, at::ScalarType compute) {
+  const int64_t bad = count_bad_warm_starts(init, compute);
+  if (bad != 0) throw_bad_init(bad, init.numel() / 9);
 }
 
 // Where run_fit writes: `out` itself, given by the caller or allocated for
@@ -214,24 +235,24 @@ void check_warm_starts(const at::Tensor& init, at::ScalarType compute, bool redu
 enum class Output { kFresh, kCallers };
 
 // Runs the kernel on (N, 3, 3) views of M, init (broadcast to M) and out,
-// converting reduced precision to float32. `out` has M's shape and dtype.
-// Tensors are only materialised (copied) for reduced precision, for layouts
+// converting reduced precision to float32 and init to M's compute dtype.
+// `out` has M's shape and dtype. Tensors are only materialised (copied) for
+// reduced precision, an init of another dtype, for layouts
 // whose batch cannot be flattened, and for a caller's out that overlaps M or
 // init other than exactly. A caller's out is written only once the call can
 // no longer fail.
 void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out, FitOptions options,
              Output output, int32_t* iterations, uint8_t* status) {
-  const at::ScalarType dtype = M.scalar_type();
-  const bool reduced = dtype == at::kHalf || dtype == at::kBFloat16;
-  const at::ScalarType compute = reduced ? at::kFloat : dtype;
+  const at::ScalarType compute = compute_dtype(M.scalar_type());
+  const bool reduced = compute != M.scalar_type();
   const int64_t n = M.numel() / 9;
   if (n == 0) return;
-  if (init.defined() && output == Output::kCallers) check_warm_starts(init, compute, reduced);
+  if (init.defined() && output == Output::kCallers) check_warm_starts(init, compute);
 
   at::Tensor m_keep, init_keep, out_keep;  // own any materialised copies
-  const MatrixBatch m_view = broadcast_view(M, M.sizes(), n, reduced, compute, m_keep);
+  const MatrixBatch m_view = broadcast_view(M, M.sizes(), n, compute, m_keep);
   MatrixBatch init_view;
-  if (init.defined()) init_view = broadcast_view(init, M.sizes(), n, reduced, compute, init_keep);
+  if (init.defined()) init_view = broadcast_view(init, M.sizes(), n, compute, init_keep);
   const bool through_temporary =
       output == Output::kCallers &&
       (overlaps_other_than_identity(out, M) || overlaps_other_than_identity(out, init));
@@ -244,7 +265,7 @@ void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out,
   const int64_t bad_inits = fit_rotation_cpu(compute, n, m_view, init.defined() ? &init_view : nullptr,
                                              *out_view, options, iterations, status);
   if (bad_inits != 0) {  // only a fresh out has been written; the error counts init in its own shape
-    check_warm_starts(init, compute, reduced);
+    check_warm_starts(init, compute);
     throw_bad_init(bad_inits, n);  // not reached: the same check found them
   }
   if (out_keep.defined()) out.copy_(out_keep.view(out.sizes()));
@@ -303,16 +324,15 @@ at::Tensor fit_rotation_backward_cpu_op(const at::Tensor& grad, const at::Tensor
   TORCH_CHECK_VALUE(at::is_expandable_to(M.sizes(), R.sizes()), kBackwardName, ": M of shape ", M.sizes(),
                     " must broadcast to R's shape ", R.sizes());
   check_gradient_eps(gradient_eps, kBackwardName);
-  const at::ScalarType dtype = R.scalar_type();
-  const bool reduced = dtype == at::kHalf || dtype == at::kBFloat16;
-  const at::ScalarType compute = reduced ? at::kFloat : dtype;
+  const at::ScalarType compute = compute_dtype(R.scalar_type());
+  const bool reduced = compute != R.scalar_type();
   at::Tensor out = at::empty(R.sizes(), R.options().memory_format(at::MemoryFormat::Contiguous));
   const int64_t n = R.numel() / 9;
   if (n == 0) return out;
   at::Tensor grad_keep, r_keep, m_keep;
-  const MatrixBatch grad_view = broadcast_view(grad, R.sizes(), n, reduced, compute, grad_keep);
-  const MatrixBatch r_view = broadcast_view(R, R.sizes(), n, reduced, compute, r_keep);
-  const MatrixBatch m_view = broadcast_view(M, R.sizes(), n, reduced, compute, m_keep);
+  const MatrixBatch grad_view = broadcast_view(grad, R.sizes(), n, compute, grad_keep);
+  const MatrixBatch r_view = broadcast_view(R, R.sizes(), n, compute, r_keep);
+  const MatrixBatch m_view = broadcast_view(M, R.sizes(), n, compute, m_keep);
   if (!reduced) {
     rotation_tangent_cpu(compute, n, grad_view, r_view, m_view, contiguous_view(out), gradient_eps);
     return out;
@@ -350,6 +370,7 @@ TORCH_LIBRARY(torchrot, m) {
   // previously forced one. Use torchrot.testing.cpu_kernel(name).
   m.def("_set_cpu_kernel(str name) -> str",
         [](c10::string_view name) { return set_thread_cpu_kernel(std::string(name)); });
+  m.def("_count_bad_warm_starts(Tensor init) -> int");
   // Operators that do nothing: the benchmark's yardsticks for the fixed cost
   // of a custom-op call, with one argument, and with fit_rotation's
   // signature and an (uninitialised) output of M's shape.
@@ -364,6 +385,7 @@ TORCH_LIBRARY_IMPL(torchrot, CPU, m) {
   m.impl("fit_rotation_out", &fit_rotation_out_cpu_op);
   m.impl("fit_rotation_info", &fit_rotation_info_cpu_op);
   m.impl("fit_rotation_backward", &fit_rotation_backward_cpu_op);
+  m.impl("_count_bad_warm_starts", &count_bad_warm_starts_op);
   m.impl("_empty_op", [](const at::Tensor&) {});
   m.impl("_empty_fit_rotation", [](const at::Tensor& M, const std::optional<at::Tensor>&, std::optional<int64_t>,
                                    c10::string_view, double) { return at::empty(M.sizes(), M.options()); });

@@ -278,7 +278,7 @@ ERROR_CASES = {
     "M_long": (torch.ones(5, 3, 3, dtype=torch.int64), None, None, "conservative", TypeError, r"\bM\b.*float"),
     "M_bool": (torch.ones(5, 3, 3, dtype=torch.bool), None, None, "conservative", TypeError, r"\bM\b.*float"),
     "M_complex": (torch.ones(5, 3, 3, dtype=torch.complex64), None, None, "conservative", TypeError, r"\bM\b.*float"),
-    "init_dtype": (M5, ROT5.double(), None, "conservative", TypeError, r"\binit\b.*dtype"),
+    "init_int": (M5, ROT5.int(), None, "conservative", TypeError, r"\binit\b.*float32.*got torch\.int32"),
     "init_shape": (M5, torch.eye(2), None, "conservative", ValueError, r"\binit\b.*shape"),
     "init_not_broadcastable": (M5, ROT5[:4], None, "conservative", ValueError, r"\binit\b"),
     "init_not_broadcastable_inner": (M5.expand(2, 5, 3, 3), ROT5[:2], None, "conservative", ValueError, r"\binit\b"),
@@ -360,7 +360,9 @@ def test_errors_leave_out_untouched_for_argument_checks():
     with pytest.raises(ValueError):
         torchrot.fit_rotation(M5, variant="nope", out=out)
     with pytest.raises(TypeError):
-        torchrot.fit_rotation(M5, ROT5.double(), out=out)
+        torchrot.fit_rotation(M5, ROT5.int(), out=out)
+    with pytest.raises(ValueError):
+        torchrot.fit_rotation(M5, 2 * ROT5, out=out)
     assert (out == 3.0).all()
 
 

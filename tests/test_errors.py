@@ -138,7 +138,7 @@ OP_CASES = {
     "M-0d": ("fit_rotation", (torch.tensor(1.0), None, None, "newton", 1e-6)),
     "M-dtype": ("fit_rotation", (M.int(), None, None, "newton", 1e-6)),
     "init-shape": ("fit_rotation", (M, torch.eye(2), None, "newton", 1e-6)),
-    "init-dtype": ("fit_rotation", (M, ROT, None, "newton", 1e-6)),
+    "init-dtype": ("fit_rotation", (M, ROT.int(), None, "newton", 1e-6)),
     "init-broadcast": ("fit_rotation", (M, R[:3], None, "newton", 1e-6)),
     "init-not-rotation": ("fit_rotation", (M, 2 * R, None, "newton", 1e-6)),
     "init-one-reflection": ("fit_rotation_info", (M64, torch.cat([ROT[:3], -ROT[3:]]), 1, "newton")),
@@ -221,7 +221,7 @@ COMPILE_CASES = {
     "variant": lambda m: torchrot.fit_rotation(m, variant="Newton"),
     "max_iter": lambda m: torchrot.fit_rotation(m, max_iter=0),
     "gradient_eps": lambda m: torchrot.fit_rotation(m, gradient_eps=-1.0),
-    "init-dtype": lambda m: torchrot.fit_rotation(m, ROT),
+    "init-dtype": lambda m: torchrot.fit_rotation(m, ROT.int()),
     "out-dtype": lambda m: torchrot.fit_rotation(m, out=torch.empty(4, 3, 3, dtype=torch.float64)),
     "info-variant": lambda m: torchrot.fit_rotation_info(m, variant="x"),
 }

@@ -245,7 +245,7 @@ def test_init_is_forwarded_as_warm_start(monkeypatch):
         torchrot.rigid_registration(x, y, init=torch.eye(3, dtype=torch.float64).expand(3, 3, 3))
     with pytest.raises(TypeError, match="init must have x's dtype"):
         torchrot.rigid_registration(x, y, init=R.float())
-    with pytest.raises(RuntimeError, match="init must hold rotations"):
+    with pytest.raises(ValueError, match="init must hold rotations"):
         torchrot.rigid_registration(x, y, init=2 * R)
 
 

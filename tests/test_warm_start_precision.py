@@ -70,6 +70,23 @@ def test_issue_case_float32_fits_as_float64_warm_start():
     assert gap.max() <= CRITERIA[torch.float64]["shortfall"]
 
 
+@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("init_dtype", [torch.float64, torch.float32, torch.float16, torch.bfloat16], ids=str)
+def test_init_of_another_dtype_is_cast(init_dtype, kernel, dtype):
+    """A warm start of any float dtype is accepted as it is (no cast needed by
+    the caller): the result equals the fit from the init cast to M's dtype."""
+    M = make_matrices("warm", 500, 36, torch.float64).to(dtype)
+    init = torchrot.fit_rotation(M.double()).to(init_dtype)
+    with KERNELS[kernel]():
+        for max_iter in (None, 1):
+            R = torchrot.fit_rotation(M, init, max_iter=max_iter)
+            assert R.dtype == dtype
+            assert torch.equal(R, torchrot.fit_rotation(M, init.to(dtype), max_iter=max_iter))
+        out = torch.empty_like(M)
+        torchrot.fit_rotation(M, init, max_iter=1, out=out)
+        assert torch.equal(out, torchrot.fit_rotation(M, init.to(dtype), max_iter=1))
+
+
 def test_repeated_one_step_updates_do_not_drift():
     """Results fed back as the next warm start stay rotations at full precision."""
     M = make_matrices("warm", 2000, 32, torch.float64)

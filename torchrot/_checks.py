@@ -82,7 +82,9 @@ def check_init(M: torch.Tensor, init: torch.Tensor | None) -> None:
     if init is None:
         return
     check_matrix_arg(init, "init")
-    check_device_dtype(init, "init", M, "M")
+    # any float dtype: a warm start of another precision is cast to M's compute dtype
+    if init.device != M.device:
+        raise ValueError(f"{OP_NAME}: init must be on M's device ({M.device}), got {init.device}")
     batch, init_batch = M.shape[:-2], init.shape[:-2]
     try:
         ok = len(init_batch) <= len(batch) and torch.broadcast_shapes(init_batch, batch) == batch
