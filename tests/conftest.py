@@ -12,14 +12,18 @@ import pytest
 import torch
 
 import torchrot  # noqa: F401  (registers torch.ops.torchrot.*)
-from torchrot.testing import CRITERIA, make_matrices, rotation_errors
+from torchrot.testing import CRITERIA, dtype_id, make_matrices, rotation_errors
 
 DTYPES = (torch.float32, torch.float64)
 VARIANTS = ("newton", "conservative", "gershgorin")
 
 
-def dtype_id(dtype: torch.dtype) -> str:
-    return str(dtype).removeprefix("torch.")
+@pytest.fixture
+def restore_threads():
+    """Restores torch's thread count after a test that changes it."""
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
 
 
 @pytest.fixture(params=DTYPES, ids=dtype_id)

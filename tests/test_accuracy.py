@@ -13,9 +13,10 @@ import pytest
 import torch
 
 import torchrot
-from torchrot import reference
-from torchrot.reference import _cayley_step, cayley_rotation
+from torchrot._limits import CONVERGED_CAP, MAX_ESCAPES
+from torchrot.reference import cayley_rotation
 from torchrot.testing import (
+    dtype_id,
     CRITERIA,
     DISTRIBUTIONS,
     WELL_CONDITIONED,
@@ -27,10 +28,6 @@ from torchrot.testing import (
 
 N = 3000  # matrices per accuracy case
 N_SMALL = 1000
-
-
-def dtype_id(dtype: torch.dtype) -> str:
-    return str(dtype).removeprefix("torch.")
 
 
 def _eye(dtype, batch=()):
@@ -258,27 +255,47 @@ def test_warm_start_nearby_converges(name, dtype, variant, matrices):
     init = (rotation_svd(M.double()) @ random_rotations(N_SMALL, gen, math.radians(5))).to(dtype)
     R, iterations, status = torchrot.fit_rotation_info(M, init, variant=variant)
     _assert_close_to_svd(R, M, f"{name}/{variant}/{dtype_id(dtype)} converged from 5 deg")
+    # measured (1000 matrices per distribution, seed 9): at most 3.9 steps on
+    # average (float64 gershgorin) and no fallback; limits leave ~15% / 5 matrices
     assert iterations.float().mean().item() <= 4.5
     assert (status == 1).float().mean().item() <= 0.005
+
+
+def _hand_objective_estimate(S: torch.Tensor, variant: str) -> torch.Tensor:
+    """c of each variant, written out from the paper for one matrix at a time
+    (not the reference's vectorised code): Newton c = tr S; conservative
+    c = sqrt(tr(S)^2 + m.m) (Eq. 26 with g ~ tr S); Gershgorin Eq. 27,
+    sqrt(max(t, 2 lambda_2 - t)^2 + m.m), with 2 lambda_2 bounded by Eq. 28,
+    max_i (2 s_ii + sum_{j != i} |s_ij + s_ji|)."""
+    values = []
+    for Si in S.reshape(-1, 3, 3).tolist():
+        t = Si[0][0] + Si[1][1] + Si[2][2]
+        m = (Si[2][1] - Si[1][2], Si[0][2] - Si[2][0], Si[1][0] - Si[0][1])
+        mm = sum(x * x for x in m)
+        if variant == "newton":
+            c = t
+        elif variant == "conservative":
+            c = math.sqrt(t * t + mm)
+        else:
+            two_lambda2 = max(2 * Si[i][i] + sum(abs(Si[i][j] + Si[j][i]) for j in range(3) if j != i)
+                              for i in range(3))
+            g = max(t, two_lambda2 - t)  # the term the text before Eq. 28 approximates
+            c = math.sqrt(g * g + mm)
+        values.append(c)
+    return torch.tensor(values, dtype=torch.float64).reshape(S.shape[:-2])
 
 
 def _hand_step(M: torch.Tensor, init: torch.Tensor, variant: str) -> torch.Tensor:
     """One Cayley step in float64 straight from the paper's formula:
     S = init^T M, m = vee(S - S^T), t = tr S, c the variant's estimate,
-    z solving (S + S^T - (t + c) I) z = -m, R = init Q(z)."""
+    z solving (S + S^T - (t + c) I) z = -m (Eq. 24), R = init Q(z) (Eq. 10)."""
     Md, Id = M.double(), init.double()
     S = Id.mT @ Md
     m = torch.stack([S[..., 2, 1] - S[..., 1, 2], S[..., 0, 2] - S[..., 2, 0], S[..., 1, 0] - S[..., 0, 1]], -1)
     t = S.diagonal(dim1=-2, dim2=-1).sum(-1)
-    z_ref = _cayley_step(S, variant)
-    if variant in ("newton", "conservative"):
-        c = t if variant == "newton" else torch.sqrt(t * t + (m * m).sum(-1))
-        H = S + S.mT - (t + c)[..., None, None] * torch.eye(3, dtype=torch.float64)
-        z = torch.linalg.solve(H, -m)
-        # the reference's Cramer's-rule step is the same step
-        assert (z - z_ref).abs().max().item() <= 1e-12 * (1 + z.abs().max().item())
-    else:
-        z = z_ref  # Eqs. 27-28, as implemented in the reference
+    c = _hand_objective_estimate(S, variant)
+    H = S + S.mT - (t + c)[..., None, None] * torch.eye(3, dtype=torch.float64)
+    z = torch.linalg.solve(H, -m)
     return Id @ cayley_rotation(z)
 
 
@@ -366,6 +383,8 @@ def test_repeated_warm_start_does_not_drift(dtype, variant, matrices):
 def test_iteration_counts_on_warm_default_variant(dtype, matrices):
     M = matrices("warm", N, 15, dtype)
     _, iterations, status = torchrot.fit_rotation_info(M)
+    # measured (3000 "warm" matrices, seed 15, cold start): 1.9 (float32) and
+    # 2.7 (float64) steps on average, no fallback; the limits leave ~50% / 60 matrices
     assert iterations.float().mean().item() <= 4
     assert (status == 1).float().mean().item() <= 0.02
     assert (status == 0).sum() + (status == 1).sum() == N
@@ -374,10 +393,12 @@ def test_iteration_counts_on_warm_default_variant(dtype, matrices):
 def test_fallback_rate_on_warm_every_variant(dtype, variant, matrices):
     M = matrices("warm", N, 15, dtype)
     _, iterations, status = torchrot.fit_rotation_info(M, variant=variant)
+    # measured (3000 "warm" matrices, seed 15, cold start): at most 3.75 steps
+    # on average (float64 gershgorin), at most 9 in one matrix, no fallback
     assert (status == 1).float().mean().item() <= 0.02
     assert iterations.float().mean().item() <= 6
     # at most CONVERGED_CAP steps per start and per saddle escape
-    cap = reference.CONVERGED_CAP * (1 + getattr(reference, "MAX_ESCAPES", 1))
+    cap = CONVERGED_CAP * (1 + MAX_ESCAPES)
     assert iterations.max().item() <= cap
 
 
@@ -385,6 +406,7 @@ def test_exact_rotations_need_no_fallback(dtype, variant, matrices):
     M = matrices("rot180_exact", N, 16, dtype)
     _, iterations, status = torchrot.fit_rotation_info(M, variant=variant)
     assert (status == 0).all()
+    # measured (3000 matrices, seed 16): at most 4.3 steps on average (float64 newton)
     assert iterations.float().mean().item() <= 5
 
 

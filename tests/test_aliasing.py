@@ -14,14 +14,10 @@ import pytest
 import torch
 
 import torchrot
-from torchrot.testing import generic_kernel, make_matrices, random_rotations
+from torchrot.testing import generic_kernel, make_matrices, rotations
 
 op = torch.ops.torchrot
 KERNELS = {"cpu": contextlib.nullcontext, "generic": generic_kernel}
-
-
-def _rotations(n: int, seed: int, dtype) -> torch.Tensor:
-    return random_rotations(n, torch.Generator().manual_seed(seed)).to(dtype)
 
 
 # id -> builder of (base, M view, init view or None, out view) over one
@@ -75,7 +71,7 @@ def _case(layout: str, dtype):
     base = make_matrices("gaussian", 130, 11, torch.float64).to(dtype)
     views = LAYOUTS[layout](base)
     if views[1] is not None:  # init is a view into base: make base hold rotations
-        base.copy_(_rotations(130, 12, dtype))
+        base.copy_(rotations(130, 12, dtype))
     M, init, out = views
     if M is None:
         M = make_matrices("warm", out.shape[0], 13, torch.float64).to(dtype)
@@ -110,7 +106,7 @@ def test_overlapping_out_reduced_precision(low):
 def test_exact_identity_is_in_place(kernel, dtype):
     """out = M and out = init (the in-place warm-start update) need no copy."""
     M = make_matrices("warm", 50, 15, torch.float64).to(dtype)
-    init = _rotations(50, 16, dtype)
+    init = rotations(50, 16, dtype)
     with KERNELS[kernel]():
         expected_M = torchrot.fit_rotation(M)
         expected_init = torchrot.fit_rotation(M, init, max_iter=1)
@@ -145,7 +141,7 @@ def test_backward_arguments_may_alias(kernel, dtype):
 
 def test_failed_call_leaves_overlapping_out_untouched():
     """A bad warm start raises before anything is written, also through the temporary."""
-    base = _rotations(65, 19, torch.float64)
+    base = rotations(65, 19, torch.float64)
     base[40] *= 2
     before = base.clone()
     with pytest.raises(ValueError, match="1 of 64 are not"):

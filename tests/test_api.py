@@ -9,7 +9,7 @@ import torch
 
 import torchrot
 from torchrot._limits import INIT_TOLERANCE
-from torchrot.testing import CRITERIA, make_matrices, random_rotations, rotation_errors, rotation_svd
+from torchrot.testing import CRITERIA, make_matrices, rotation_errors, rotation_svd, rotations
 
 op = torch.ops.torchrot
 
@@ -17,11 +17,6 @@ op = torch.ops.torchrot
 def _gaussian(shape, seed=0, dtype=torch.float64) -> torch.Tensor:
     n = math.prod(shape)
     return make_matrices("gaussian", n, seed, dtype).reshape(*shape, 3, 3)
-
-
-def _rotations(shape, seed=0, dtype=torch.float64, max_angle=math.pi) -> torch.Tensor:
-    n = math.prod(shape)
-    return random_rotations(n, torch.Generator().manual_seed(seed), max_angle).to(dtype).reshape(*shape, 3, 3)
 
 
 # ---------------------------------------------------------------------------
@@ -45,7 +40,7 @@ def test_batch_shapes(batch, dtype, max_iter):
     assert info.iterations.shape == batch and info.iterations.dtype == torch.int32
     assert info.status.shape == batch and info.status.dtype == torch.uint8
     # with a warm start of the same batch shape
-    init = _rotations(batch, 2, dtype)
+    init = rotations(batch, 2, dtype)
     Ri = torchrot.fit_rotation(M, init, max_iter=max_iter)
     assert Ri.shape == M.shape
     flat_init = torchrot.fit_rotation(M.reshape(-1, 3, 3), init.reshape(-1, 3, 3), max_iter=max_iter)
@@ -67,7 +62,7 @@ def test_single_matrix_matches_batched(dtype):
 @pytest.mark.parametrize("max_iter", [None, 1])
 def test_init_broadcasting(m_batch, init_batch, dtype, max_iter):
     M = _gaussian(m_batch, 4, dtype)
-    init = _rotations(init_batch, 5, dtype)
+    init = rotations(init_batch, 5, dtype)
     R = torchrot.fit_rotation(M, init, max_iter=max_iter)
     expected = torchrot.fit_rotation(M, init.expand(M.shape).contiguous(), max_iter=max_iter)
     assert R.shape == M.shape
@@ -110,7 +105,7 @@ def test_non_contiguous_M(kind, dtype, max_iter):
     assert not M.is_contiguous()
     init = None
     if max_iter is not None:
-        init = rotation_svd(M.double()).to(dtype) @ _rotations(M.shape[:-2], 8, dtype, math.radians(10))
+        init = rotation_svd(M.double()).to(dtype) @ rotations(M.shape[:-2], 8, dtype, math.radians(10))
     R = torchrot.fit_rotation(M, init, max_iter=max_iter)
     expected = torchrot.fit_rotation(M.contiguous(), init, max_iter=max_iter)
     assert R.is_contiguous()
@@ -173,7 +168,7 @@ def test_out_leaves_neighbouring_memory_alone(dtype):
 def test_out_aliases_init(dtype, variant, max_iter):
     """In-place warm-start update: fit_rotation(M, init=R, out=R)."""
     M = make_matrices("warm", 500, 12, dtype)
-    init = (rotation_svd(M.double()) @ _rotations((500,), 13, torch.float64, math.radians(20))).to(dtype)
+    init = (rotation_svd(M.double()) @ rotations((500,), 13, torch.float64, math.radians(20))).to(dtype)
     expected = torchrot.fit_rotation(M, init, max_iter=max_iter, variant=variant)
     R = init.clone()
     returned = torchrot.fit_rotation(M, init=R, max_iter=max_iter, variant=variant, out=R)
@@ -192,7 +187,7 @@ def test_out_aliases_M(dtype):
     assert torchrot.fit_rotation(Mc, out=Mc) is Mc
     assert torch.equal(Mc, expected)
     # with a warm start as well
-    init = _rotations((300,), 15, dtype)
+    init = rotations((300,), 15, dtype)
     expected = torchrot.fit_rotation(M, init, max_iter=2)
     Mc = M.clone()
     torchrot.fit_rotation(Mc, init, max_iter=2, out=Mc)
@@ -233,30 +228,6 @@ def test_reduced_precision(low, variant, max_iter):
 # ---------------------------------------------------------------------------
 # Determinism across thread counts
 # ---------------------------------------------------------------------------
-
-
-@pytest.fixture
-def restore_threads():
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
-
-
-@pytest.mark.parametrize("name", ["gaussian", "warm"])
-def test_thread_count_does_not_change_bits(name, dtype, restore_threads):
-    n = 100_000
-    M = make_matrices(name, n, 21, dtype)
-    init = _rotations((n,), 22, dtype, math.radians(30))
-    results = []
-    for threads in (1, 2, 3):  # 3 threads: other chunk boundaries
-        torch.set_num_threads(threads)
-        results.append(
-            (torchrot.fit_rotation_info(M), torchrot.fit_rotation(M, init, max_iter=1, variant="gershgorin"))
-        )
-    (info1, warm1) = results[0]
-    for info, warm in results[1:]:
-        assert all(torch.equal(a, b) for a, b in zip(info1, info))
-        assert torch.equal(warm1, warm)
 
 
 # ---------------------------------------------------------------------------

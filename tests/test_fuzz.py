@@ -46,7 +46,7 @@ from hypothesis import strategies as st
 
 import torchrot
 from torchrot.reference import quaternion_rotation, rotation_svd
-from torchrot.testing import CRITERIA, DISTRIBUTIONS, cpu_kernel, random_rotations
+from torchrot.testing import CRITERIA, DISTRIBUTIONS, bits, cpu_kernel, dtype_id, random_rotations
 
 DTYPES = (torch.float32, torch.float64)
 VARIANTS = ("newton", "conservative", "gershgorin")
@@ -63,7 +63,6 @@ def _supported_isas() -> tuple[str, ...]:
 SUPPORTED_ISAS = _supported_isas()
 LONG = os.environ.get("TORCHROT_FUZZ", "") == "long"
 SCALE = int(os.environ.get("TORCHROT_FUZZ_SCALE", "1"))
-INT_VIEW = {torch.float32: torch.int32, torch.float64: torch.int64}
 
 
 def _settings(default_examples: int, long_examples: int) -> settings:
@@ -106,10 +105,6 @@ def _report_counts(request):
 
 def _kernel(isa: str):
     return cpu_kernel(isa)
-
-
-def _bits(t: torch.Tensor) -> torch.Tensor:
-    return t.contiguous().view(INT_VIEW[t.dtype])
 
 
 def fit_every_kernel(M, init, max_iter, variant) -> dict:
@@ -202,9 +197,9 @@ def check_fit(M: torch.Tensor, init: torch.Tensor | None, max_iter, variant, wha
 
     for isa, got in results.items():
         for name, a, b in zip(("R", "iterations", "status"), got, (R, iterations, status)):
-            same = torch.equal(_bits(a), _bits(b)) if name == "R" else torch.equal(a, b)
+            same = torch.equal(bits(a), bits(b)) if name == "R" else torch.equal(a, b)
             if not same:
-                bad = (_bits(a) != _bits(b)).reshape(n, -1).any(1) if name == "R" else (a != b)
+                bad = (bits(a) != bits(b)).reshape(n, -1).any(1) if name == "R" else (a != b)
                 i = int(bad.nonzero()[0])
                 pytest.fail(f"{context}: {isa} {name} differs from scalar at matrix {i}: M={M[i].tolist()}, "
                             f"{isa} {a[i].tolist()} vs scalar {b[i].tolist()}")
@@ -251,7 +246,7 @@ def check_derivatives(M, init, max_iter, variant, G, gradient_eps, what: str = "
         for name, a, b in zip(("backward", "tangent"), got, results["scalar"]):
             # entrywise: equal bits, or NaN in both (the NaN's sign may differ
             # between the scalar and SIMD min/max for NaN/Inf inputs)
-            same = ((_bits(a) == _bits(b)) | (torch.isnan(a) & torch.isnan(b))).reshape(n, 9).all(1)
+            same = ((bits(a) == bits(b)) | (torch.isnan(a) & torch.isnan(b))).reshape(n, 9).all(1)
             if not bool(same.all()):
                 i = int((~same).nonzero()[0])
                 pytest.fail(f"{context}: {isa} {name} differs from scalar at matrix {i}: M={M[i].tolist()} "
@@ -417,11 +412,7 @@ def incoming_gradients(draw, n: int, dtype):
 # ---------------------------------------------------------------------------
 
 
-def _dtype_id(dtype):
-    return str(dtype).removeprefix("torch.")
-
-
-@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
 def test_arbitrary_matrices(dtype):
     """Batches of 0-40 drawn matrices (every kind mixed in the same SIMD
     blocks), cold or warm, every mode and variant."""
@@ -434,7 +425,7 @@ def test_arbitrary_matrices(dtype):
     run()
 
 
-@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
 def test_power_of_two_scaling_is_exact(dtype):
     """fit(2^k1 M) == fit(2^k2 M) bit for bit (R, iterations, status) for all
     k1, k2 that keep every non-zero entry normal, and the reciprocal of the
@@ -473,7 +464,7 @@ def test_power_of_two_scaling_is_exact(dtype):
             with _kernel(isa):
                 a = torchrot.fit_rotation_info(A[None], max_iter=max_iter, variant=variant)
                 b = torchrot.fit_rotation_info(B[None], max_iter=max_iter, variant=variant)
-            assert torch.equal(_bits(a.R), _bits(b.R)), f"{isa}: 2^{k1} M and 2^{k2} M differ: M={M.tolist()}"
+            assert torch.equal(bits(a.R), bits(b.R)), f"{isa}: 2^{k1} M and 2^{k2} M differ: M={M.tolist()}"
             assert torch.equal(a.iterations, b.iterations) and torch.equal(a.status, b.status)
         CHECKED["matrices"] += 2
 
@@ -540,7 +531,7 @@ def batched_problem(seed: int, n: int, dtype, p_special: float, p_non_finite: fl
 BATCH_SIZE = 65536 if LONG else 2048
 
 
-@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
 def test_batched_recipes(dtype):
     """Drawn recipes (seed, special-value and NaN/Inf rates, exponent spread,
     cold/warm, mode, variant, damping) expanded to batches of every
@@ -562,7 +553,7 @@ def test_batched_recipes(dtype):
     run()
 
 
-@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
 def test_derivatives_of_arbitrary_matrices(dtype):
     """Backward and forward-mode derivatives of batches of 0-24 drawn
     matrices (every kind, NaN/Inf included), with drawn incoming gradients

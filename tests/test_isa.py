@@ -17,7 +17,6 @@ and signed zeros count, as "bit-identical" promises.
 """
 from __future__ import annotations
 
-import contextlib
 import functools
 import json
 import math
@@ -30,6 +29,8 @@ import torch
 
 import torchrot
 from torchrot.testing import (
+    bits,
+    dtype_id,
     DISTRIBUTIONS,
     edge_case_matrices,
     make_matrices,
@@ -38,13 +39,8 @@ from torchrot.testing import (
 )
 from torchrot.testing import cpu_kernel as forced_kernel
 
-# as in conftest.py (not imported from it: conftest is not a module to import)
 DTYPES = (torch.float32, torch.float64)
 VARIANTS = ("newton", "conservative", "gershgorin")
-
-
-def dtype_id(dtype: torch.dtype) -> str:
-    return str(dtype).removeprefix("torch.")
 
 ENV = "TORCHROT_CPU_CAPABILITY"
 ISAS = ("scalar", "default", "avx2", "avx512")  # lowest to highest
@@ -98,19 +94,11 @@ def use_isa():
 # Helpers: bitwise comparison with a precise failure message
 # ---------------------------------------------------------------------------
 
-_INT_VIEW = {torch.float32: torch.int32, torch.float64: torch.int64}
-
-
-def _bits(t: torch.Tensor) -> torch.Tensor:
-    t = t.contiguous()
-    return t.view(_INT_VIEW[t.dtype]) if t.dtype in _INT_VIEW else t
-
-
 def _bad_matrices(got, ref) -> torch.Tensor:
     """Bool (n,) mask of the matrices whose R, iterations or status differ."""
     R, R_ref = got[0], ref[0]
     n = R_ref.reshape(-1, 9).shape[0]
-    bad = (_bits(R).reshape(n, 9) != _bits(R_ref).reshape(n, 9)).any(1)
+    bad = (bits(R).reshape(n, 9) != bits(R_ref).reshape(n, 9)).any(1)
     if len(got) > 1:
         bad |= got[1].reshape(n) != ref[1].reshape(n)
         bad |= got[2].reshape(n) != ref[2].reshape(n)
@@ -124,7 +112,7 @@ def _same(got, ref) -> bool:
     if len(got) != len(ref):
         return False
     for a, b in zip(got, ref):
-        if a.shape != b.shape or a.dtype != b.dtype or not torch.equal(_bits(a), _bits(b)):
+        if a.shape != b.shape or a.dtype != b.dtype or not torch.equal(bits(a), bits(b)):
             return False
     return True
 
@@ -142,7 +130,7 @@ def _describe(got, ref, M, init=None, limit=3) -> str:
         if init is not None:
             line += f" init={init.reshape(-1, 9)[i].tolist()}"
         line += f"\n       R={got[0].reshape(-1, 9)[i].tolist()}\n   R_ref={ref[0].reshape(-1, 9)[i].tolist()}"
-        gb, rb = _bits(got[0]).reshape(-1, 9)[i], _bits(ref[0]).reshape(-1, 9)[i]
+        gb, rb = bits(got[0]).reshape(-1, 9)[i], bits(ref[0]).reshape(-1, 9)[i]
         width = 2 * got[0].element_size()
         diffs = [f"{k}: {int(g) & (1 << 4 * width) - 1:0{width}x} vs {int(r) & (1 << 4 * width) - 1:0{width}x}"
                  for k, (g, r) in enumerate(zip(gb.tolist(), rb.tolist())) if g != r]
@@ -547,7 +535,7 @@ def test_out_aliasing_inputs(isa, dtype, target, layout, use_isa):
             # the aliased buffer, with the input's values, in the layout tested
             source = init if target == "init" else M
             buf = source.mT.contiguous().mT if layout == "transposed" else source.clone()
-            assert torch.equal(_bits(buf), _bits(source))
+            assert torch.equal(bits(buf), bits(source))
             M_arg = buf if target == "M" else M.clone()
             init_arg = buf if target == "init" else init.clone()
             other_before = (init_arg if target == "M" else M_arg).clone()
@@ -594,13 +582,6 @@ def _large_batch(dtype):
     M[idx] = _scatter_non_finite(M[idx], gen)
     perm = torch.randperm(N_THREADED, generator=gen)
     return M[perm].contiguous(), init[perm].contiguous()
-
-
-@pytest.fixture
-def restore_threads():
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
 
 
 _THREAD_CASES = {  # name -> (warm start?, max_iter, variant)

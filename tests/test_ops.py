@@ -8,13 +8,9 @@ import pytest
 import torch
 
 import torchrot
-from torchrot.testing import WELL_CONDITIONED, make_matrices, random_rotations, rotation_svd
+from torchrot.testing import WELL_CONDITIONED, make_matrices, rotation_svd, rotations
 
 op = torch.ops.torchrot
-
-
-def _rotations(n, seed, dtype, max_angle=math.pi):
-    return random_rotations(n, torch.Generator().manual_seed(seed), max_angle).to(dtype)
 
 
 # ---------------------------------------------------------------------------
@@ -30,7 +26,7 @@ def _samples():
     M32 = make_matrices("rot60", 6, 1, torch.float32)
     M64 = make_matrices("gaussian", 6, 2, torch.float64)
     init32 = rotation_svd(M32.double()).float()
-    init64 = _rotations(6, 3, torch.float64)
+    init64 = rotations(6, 3, torch.float64)
     return [
         ("unbatched", (M64[0], None, None, "conservative")),
         ("batch_f32", (M32, None, None, "conservative")),
@@ -130,7 +126,7 @@ def _fit_info(M):
 @pytest.fixture
 def compile_data():
     M = make_matrices("rot60", 64, 7, torch.float64)
-    init = rotation_svd(M) @ _rotations(64, 8, torch.float64, math.radians(10))
+    init = rotation_svd(M) @ rotations(64, 8, torch.float64, math.radians(10))
     return M, init
 
 
@@ -293,7 +289,7 @@ def test_reference_iterations_match_kernel(name, variant, matrices):
 @pytest.mark.parametrize("max_iter", [1, 3])
 def test_reference_matches_kernel_with_init(dtype, variant, max_iter, matrices):
     M = matrices("rot60", N_REF, 32, dtype)
-    init = (rotation_svd(M.double()) @ _rotations(N_REF, 33, torch.float64, math.radians(30))).to(dtype)
+    init = (rotation_svd(M.double()) @ rotations(N_REF, 33, torch.float64, math.radians(30))).to(dtype)
     R_ref, it_ref, st_ref = torchrot.fit_rotation_reference(
         M, init, max_iter=max_iter, variant=variant, return_info=True
     )

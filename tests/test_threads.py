@@ -15,20 +15,15 @@ import pytest
 import torch
 
 import torchrot
-from torchrot.testing import make_matrices, make_warm_start
+from torchrot.testing import bits, make_matrices, make_warm_start
 
-INT_VIEW = {torch.float32: torch.int32, torch.float64: torch.int64}
-
-
-def _bits(t: torch.Tensor) -> torch.Tensor:
-    return t.contiguous().view(INT_VIEW[t.dtype]) if t.dtype in INT_VIEW else t
 
 
 def _same(a, b) -> bool:
     a = a if isinstance(a, tuple) else (a,)
     b = b if isinstance(b, tuple) else (b,)
     return len(a) == len(b) and all(
-        x.shape == y.shape and x.dtype == y.dtype and torch.equal(_bits(x), _bits(y)) for x, y in zip(a, b)
+        x.shape == y.shape and x.dtype == y.dtype and torch.equal(bits(x), bits(y)) for x, y in zip(a, b)
     )
 
 
@@ -65,13 +60,6 @@ def _calls() -> list:
             (f"backward {tag}", backward),
         ]
     return calls
-
-
-@pytest.fixture
-def restore_threads():
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
 
 
 def test_concurrent_calls_and_thread_count_changes(restore_threads):

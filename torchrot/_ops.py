@@ -60,12 +60,14 @@ def fit_rotation(
     Args:
         M: ``(..., 3, 3)`` float32 or float64 (float16/bfloat16 are computed in
             float32 and returned in their dtype); any batch shape and strides.
-        init: optional ``(..., 3, 3)`` rotations broadcastable to M, same dtype
-            and device: the warm start R0 (e.g. the previous iteration's R).
-            Must be rotations up to 1e-4 (float32) / 1e-7 (float64); they are
-            re-orthonormalised (one Newton-Schulz step) before use, so results
-            fed back call after call do not drift. Without init, a cold start
-            picks the best of 12 pre-rotations. No gradient flows to init.
+        init: optional ``(..., 3, 3)`` rotations broadcastable to M, on M's
+            device, of any float dtype (cast to M's): the warm start R0 (e.g.
+            the previous iteration's R). Rotations rounded to any float dtype
+            are accepted (|R^T R - I|_F < 0.05, det > 0) and brought to the
+            compute dtype's precision by Newton-Schulz steps, so results fed
+            back call after call, or across precisions, do not drift. Without
+            init, a cold start picks the best of 12 pre-rotations. No gradient
+            flows to init.
         max_iter: ``None`` (default) iterates each matrix to convergence at its
             dtype's precision and guarantees the maximum (a Horn/Jacobi
             fallback takes over matrices that do not converge within 12 steps

@@ -20,6 +20,32 @@ from torchrot.reference import cayley_rotation, rotation_svd
 
 Generator = Callable[[int, torch.Generator], torch.Tensor]
 
+def dtype_id(dtype: torch.dtype) -> str:
+    """``"float32"`` for torch.float32: test ids and messages."""
+    return str(dtype).removeprefix("torch.")
+
+
+_INTEGER_VIEW = {torch.float32: torch.int32, torch.float64: torch.int64, torch.float16: torch.int16,
+                 torch.bfloat16: torch.int16}
+
+
+def bits(t: torch.Tensor) -> torch.Tensor:
+    """The bits of a float tensor as integers (contiguous), for bit-for-bit
+    comparisons in which NaN payloads and signed zeros count; other dtypes
+    are returned as they are."""
+    t = t.contiguous()
+    return t.view(_INTEGER_VIEW[t.dtype]) if t.dtype in _INTEGER_VIEW else t
+
+
+def rotations(shape: int | tuple[int, ...], seed: int = 0, dtype: torch.dtype = torch.float64,
+              max_angle: float = math.pi) -> torch.Tensor:
+    """``(*shape, 3, 3)`` random rotations (angles up to ``max_angle``) from
+    seed ``seed``, in ``dtype``: :func:`random_rotations` in any batch shape."""
+    shape = (shape,) if isinstance(shape, int) else tuple(shape)
+    n = math.prod(shape)
+    return random_rotations(n, torch.Generator().manual_seed(seed), max_angle).reshape(*shape, 3, 3).to(dtype)
+
+
 #: The CPU kernel objects, lowest level first.
 CPU_KERNELS = ("scalar", "default", "avx2", "avx512")
 
