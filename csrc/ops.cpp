@@ -182,6 +182,30 @@ std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes
   return view;
 }
 
+// Whether `t` is in structure-of-arrays layout: dense, with its batch
+// dimensions flattening to one of stride 1 (the matrix index fastest, as in a
+// permuted (3, 3, N) tensor) and more than one matrix. The kernels load and
+// store such tensors as plain vectors.
+bool has_soa_layout(const at::Tensor& t) {
+  if (t.dim() < 3) return false;
+  int64_t matrices = 1;
+  for (int64_t d = t.dim() - 3; d >= 0; --d) {
+    if (t.size(d) == 1) continue;
+    if (t.stride(d) != matrices) return false;
+    matrices *= t.size(d);
+  }
+  return matrices > 1 && t.is_non_overlapping_and_dense();
+}
+
+// A new result of `t`'s shape: in t's layout where that is structure of
+// arrays (so solvers that assemble their matrices that way keep it, and the
+// kernels store plain vectors), contiguous otherwise. The fake kernels
+// (torchrot/_ops.py, new_result) make the same choice.
+at::Tensor new_result(const at::Tensor& t) {
+  if (has_soa_layout(t)) return at::empty_strided(t.sizes(), t.strides(), t.options());
+  return at::empty(t.sizes(), t.options().memory_format(at::MemoryFormat::Contiguous));
+}
+
 MatrixBatch contiguous_view(const at::Tensor& contiguous) {
   MatrixBatch view;
   view.data = contiguous.data_ptr();
@@ -276,7 +300,7 @@ at::Tensor fit_rotation_cpu_op(const at::Tensor& M, const std::optional<at::Tens
   const at::Tensor init_b = checked_init(M, init);
   const FitOptions options = parse_options(max_iter, variant);
   check_gradient_eps(gradient_eps, kOpName);
-  at::Tensor out = at::empty(M.sizes(), M.options().memory_format(at::MemoryFormat::Contiguous));
+  at::Tensor out = new_result(M);
   run_fit(M, init_b, out, options, Output::kFresh, nullptr, nullptr);
   return out;
 }
@@ -297,7 +321,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_cpu_op(
     c10::string_view variant) {
   const at::Tensor init_b = checked_init(M, init);
   const FitOptions options = parse_options(max_iter, variant);
-  at::Tensor out = at::empty(M.sizes(), M.options().memory_format(at::MemoryFormat::Contiguous));
+  at::Tensor out = new_result(M);
   const auto batch = M.sizes().slice(0, M.dim() - 2);
   at::Tensor iterations = at::empty(batch, M.options().dtype(at::kInt));
   at::Tensor status = at::empty(batch, M.options().dtype(at::kByte));
@@ -326,7 +350,7 @@ at::Tensor fit_rotation_backward_cpu_op(const at::Tensor& grad, const at::Tensor
   check_gradient_eps(gradient_eps, kBackwardName);
   const at::ScalarType compute = compute_dtype(R.scalar_type());
   const bool reduced = compute != R.scalar_type();
-  at::Tensor out = at::empty(R.sizes(), R.options().memory_format(at::MemoryFormat::Contiguous));
+  at::Tensor out = new_result(R);
   const int64_t n = R.numel() / 9;
   if (n == 0) return out;
   at::Tensor grad_keep, r_keep, m_keep;
@@ -334,7 +358,8 @@ at::Tensor fit_rotation_backward_cpu_op(const at::Tensor& grad, const at::Tensor
   const MatrixBatch r_view = broadcast_view(R, R.sizes(), n, compute, r_keep);
   const MatrixBatch m_view = broadcast_view(M, R.sizes(), n, compute, m_keep);
   if (!reduced) {
-    rotation_tangent_cpu(compute, n, grad_view, r_view, m_view, contiguous_view(out), gradient_eps);
+    rotation_tangent_cpu(compute, n, grad_view, r_view, m_view, *batch_view(out, out.sizes(), out.strides(), n),
+                         gradient_eps);
     return out;
   }
   at::Tensor out_float = at::empty({n, 3, 3}, R.options().dtype(compute));

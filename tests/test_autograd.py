@@ -18,6 +18,7 @@ import torchrot
 from torchrot._limits import GRADIENT_EPS
 from torchrot.reference import fit_rotation_backward_reference
 from torchrot.testing import (
+    dtype_id,
     cpu_kernel,
     DEGENERATE_FAMILIES,
     make_degenerate_matrices,
@@ -30,10 +31,6 @@ op = torch.ops.torchrot
 DTYPES = (torch.float32, torch.float64)
 ISAS = ("scalar", "default", "avx2", "avx512")
 SMOOTH = ("warm", "rot60", "uniform", "gaussian", "det_negative", "symmetric")
-
-
-def _dtype_id(dtype):
-    return str(dtype).removeprefix("torch.")
 
 
 def _svd_gradient(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
@@ -127,7 +124,7 @@ def test_matches_roma_special_procrustes():
     assert err.median() < 1e-9 and err.max() < 1e-4
 
 
-@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
 def test_jacobian_is_rotational_tangent(dtype):
     """dR = R [w]x: R^T dR is skew for every direction dM."""
     M = make_matrices("gaussian", 20, seed=4, dtype=dtype)
@@ -166,7 +163,7 @@ def _backward_case(n, dtype, seed=0):
     return G, R, M
 
 
-@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
 def test_kernel_matches_reference(dtype):
     G, R, M = _backward_case(2000, dtype)
     got = op.fit_rotation_backward(G, R, M, GRADIENT_EPS)
@@ -183,14 +180,15 @@ def _supported_isas():
     return ISAS[: ISAS.index(hardware) + 1]
 
 
-@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
 def test_every_kernel_bit_identical_to_scalar(dtype):
     """All tail lengths 0..70, contiguous and strided layouts."""
     G, R, M = _backward_case(70, dtype, seed=7)
     G_strided = G.mT.contiguous().mT  # column-major entries
+    G_soa = G.permute(1, 2, 0).contiguous().permute(2, 0, 1)  # structure of arrays (vector loads)
     for isa in _supported_isas()[1:]:
         for n in range(0, 71):
-            for g in (G[:n], G_strided[:n]):
+            for g in (G[:n], G_strided[:n], G_soa[:n]):
                 with cpu_kernel("scalar"):
                     expected = op.fit_rotation_backward(g, R[:n], M[:n], GRADIENT_EPS)
                 with cpu_kernel(isa) as used:
@@ -222,7 +220,7 @@ def test_out_aliasing_and_threads():
         torch.set_num_threads(previous)
 
 
-@pytest.mark.parametrize("dtype", (torch.float16, torch.bfloat16), ids=_dtype_id)
+@pytest.mark.parametrize("dtype", (torch.float16, torch.bfloat16), ids=dtype_id)
 def test_reduced_precision_backward(dtype):
     G, R, M = _backward_case(50, torch.float32)
     got = op.fit_rotation_backward(G.to(dtype), R.to(dtype), M.to(dtype), 1e-6)
@@ -241,7 +239,7 @@ def test_empty_batch():
 # ---------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("dtype", DTYPES, ids=_dtype_id)
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
 def test_degenerate_fuzz_finite_and_bounded(dtype):
     """>= 1e5 matrices over every degenerate family: no NaN/Inf gradient, and
     |dL/dM|_F <= |G|_F / (gradient_eps |M|_F) (the damping's bound:

@@ -453,6 +453,12 @@ def _one_rotation(dtype) -> torch.Tensor:
     return random_rotations(1, torch.Generator().manual_seed(4242)).to(dtype)
 
 
+def _soa_copy(t: torch.Tensor) -> torch.Tensor:
+    """t's values in structure-of-arrays layout: a (3, 3, N) tensor permuted
+    to (N, 3, 3), the matrix index fastest."""
+    return t.permute(1, 2, 0).contiguous().permute(2, 0, 1)
+
+
 # layout -> (M, init) -> (M_layout, init_layout); values equal the inputs'
 # except for "transposed", which fits the transposed matrices (M.mT)
 LAYOUTS = {
@@ -464,7 +470,12 @@ LAYOUTS = {
     "expanded_init": lambda M, init: (M.clone(), _one_rotation(M.dtype).expand(M.shape)),
     # contiguous M and init, strided out=
     "strided_out": lambda M, init: (M.clone(), init.clone()),
+    # structure of arrays (plain vector loads and stores), fresh results in it too
+    "soa": lambda M, init: (_soa_copy(M), _soa_copy(init)),
+    # structure of arrays for M, init and out=
+    "soa_out": lambda M, init: (_soa_copy(M), _soa_copy(init)),
 }
+OUT_LAYOUTS = {"strided_out": _strided_copy, "soa_out": _soa_copy}
 
 
 @pytest.mark.parametrize("layout", list(LAYOUTS))
@@ -479,26 +490,30 @@ def test_tails_and_layouts(isa, dtype, layout, use_isa):
     for n in TAIL_SIZES:
         variant = VARIANTS[n % 3]
         M, init = LAYOUTS[layout](pool_M[:n], pool_init[:n])
-        if layout in ("transposed", "strided", "expanded_init") and n > 1:  # really the strided path
+        if layout in ("transposed", "strided", "expanded_init", "soa", "soa_out") and n > 1:  # the strided path
             assert not (M.is_contiguous() and init.is_contiguous())
         Mc, initc = M.contiguous(), init.contiguous()
         for mode, use_init, max_iter in (("cold", False, None), ("warm-iter1", True, 1), ("warm", True, None)):
             ref = _run_info(use_isa, "scalar", Mc, initc if use_init else None, max_iter, variant)
             with use_isa(isa):
                 assert _cpu_kernel() == isa
-                if layout == "strided_out":
-                    out = _strided_copy(torch.zeros_like(Mc))
-                    gaps = out.as_strided((n, 3, 3), out.stride(), out.storage_offset() + 9) if n else None
+                if layout in OUT_LAYOUTS:
+                    out = OUT_LAYOUTS[layout](torch.zeros_like(Mc))
+                    gaps = None  # the NaN between the matrices of a strided out=
+                    if layout == "strided_out" and n:
+                        gaps = out.as_strided((n, 3, 3), out.stride(), out.storage_offset() + 9)
                     returned = torchrot.fit_rotation(
                         M, init if use_init else None, max_iter=max_iter, variant=variant, out=out
                     )
                     assert returned is out
                     if not _same(out, ref[0]):
                         failures.append(f"n={n} {mode} {variant}:\n" + _describe(out, ref[0], Mc, initc))
-                    if n and not torch.isnan(gaps).all():
+                    if gaps is not None and not torch.isnan(gaps).all():
                         failures.append(f"n={n} {mode} {variant}: out= wrote into the gaps of the strided view")
                     continue
                 got = _info(M, init if use_init else None, max_iter, variant)
+            if layout == "soa" and n > 1 and got[0].stride() != M.stride():
+                failures.append(f"n={n} {mode}: result strides {got[0].stride()}, not M's {M.stride()}")
             if not _same(got, ref):
                 failures.append(f"n={n} {mode} {variant}:\n" + _describe(got, ref, Mc, initc))
     assert not failures, f"{isa} {dtype_id(dtype)} layout={layout}: {len(failures)} failing cases\n" + "\n".join(

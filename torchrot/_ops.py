@@ -199,7 +199,28 @@ def fit_rotation_info(
 # ---- fake kernels (shape propagation for torch.compile / FakeTensor / meta) ----
 
 
+def has_soa_layout(t: torch.Tensor) -> bool:
+    """Whether ``t`` is in structure-of-arrays layout (csrc/ops.cpp's
+    has_soa_layout): dense, its batch dimensions flattening to one of stride 1
+    (the matrix index fastest, e.g. ``S.permute(2, 0, 1)`` of a (3, 3, N) S),
+    more than one matrix."""
+    if t.dim() < 3:
+        return False
+    matrices = 1
+    for d in range(t.dim() - 3, -1, -1):
+        if t.shape[d] == 1:
+            continue
+        if t.stride(d) != matrices:
+            return False
+        matrices *= t.shape[d]
+    return matrices > 1 and torch._prims_common.is_non_overlapping_and_dense_or_false(t)
+
+
 def _empty_result(M: torch.Tensor) -> torch.Tensor:
+    """A new result of M's shape, laid out as the C++ kernels lay it out
+    (new_result in csrc/ops.cpp): M's layout if structure of arrays, else contiguous."""
+    if has_soa_layout(M):
+        return torch.empty_strided(M.shape, M.stride(), dtype=M.dtype, device=M.device)
     return torch.empty(M.shape, dtype=M.dtype, device=M.device)
 
 
@@ -229,7 +250,7 @@ def _empty_op_fake(M):
 
 @torch.library.register_fake("torchrot::_empty_fit_rotation")
 def _empty_fit_rotation_fake(M, init=None, max_iter=None, variant="conservative", gradient_eps=GRADIENT_EPS):
-    return _empty_result(M)
+    return torch.empty(M.shape, dtype=M.dtype, device=M.device)
 
 
 @torch.library.register_fake("torchrot::fit_rotation_info")
@@ -246,10 +267,17 @@ def _fit_rotation_info_fake(M, init=None, max_iter=None, variant="conservative")
 # ---- pure-PyTorch kernels for devices without a native one ----
 
 
+def _in_result_layout(like: torch.Tensor, result: torch.Tensor) -> torch.Tensor:
+    """``result`` laid out as the C++ kernel lays out a result for ``like``."""
+    if has_soa_layout(like) or not result.is_contiguous():
+        return _empty_result(like).copy_(result)
+    return result
+
+
 def _fit_rotation_other(M, init=None, max_iter=None, variant="conservative", gradient_eps=GRADIENT_EPS):
     check_all(M, init, max_iter, variant)  # in the C++ operator's order
     check_gradient_eps(gradient_eps)
-    return fit_rotation_reference(M, init, max_iter=max_iter, variant=variant)
+    return _in_result_layout(M, fit_rotation_reference(M, init, max_iter=max_iter, variant=variant))
 
 
 def _fit_rotation_out_other(M, init, max_iter, variant, out):
@@ -261,11 +289,12 @@ def _fit_rotation_out_other(M, init, max_iter, variant, out):
 
 
 def _fit_rotation_backward_other(grad, R, M, gradient_eps=GRADIENT_EPS):
-    return fit_rotation_backward_reference(grad, R, M, gradient_eps)
+    return _in_result_layout(R, fit_rotation_backward_reference(grad, R, M, gradient_eps))
 
 
 def _fit_rotation_info_other(M, init=None, max_iter=None, variant="conservative"):
-    return fit_rotation_reference(M, init, max_iter=max_iter, variant=variant, return_info=True)
+    R, iterations, status = fit_rotation_reference(M, init, max_iter=max_iter, variant=variant, return_info=True)
+    return _in_result_layout(M, R), iterations, status
 
 
 #: operator name -> its device-generic kernel (torchrot.testing.generic_kernel

@@ -1,7 +1,9 @@
 // Moving blocks of L::width matrices between memory (any element strides)
 // and structure-of-arrays registers (entry k of every matrix of the block in
-// one vector): in-register transposition for full contiguous blocks, a
-// gather through a small buffer otherwise. Shared by the batched kernels.
+// one vector): in-register transposition for full contiguous blocks, plain
+// vector loads and stores for full blocks already in structure-of-arrays
+// layout (matrix index stride 1, e.g. a permuted (3, 3, N) tensor), a gather
+// through a small buffer otherwise. Shared by the batched kernels.
 #pragma once
 
 #include <cstdint>
@@ -23,12 +25,26 @@ inline int64_t offset(const int64_t stride[3], int64_t i, int k) {
   return i * stride[0] + (k / 3) * stride[1] + (k % 3) * stride[2];
 }
 
+// Whether a full block at these strides is in structure-of-arrays layout:
+// entry k of W consecutive matrices is W consecutive values.
+inline bool is_soa_batch(const int64_t stride[3]) { return stride[0] == 1; }
+
+// Offset of entry k of matrix 0 (the start of entry k's values in SoA layout).
+inline int64_t entry_offset(const int64_t stride[3], int k) { return (k / 3) * stride[1] + (k % 3) * stride[2]; }
+
 // Gathers `count` matrices starting at `first` into SoA lanes; missing lanes
 // of a tail block get the identity, a harmless input.
 template <typename L, bool kContiguous>
 inline Mat3<typename L::V> load_block(const typename L::Scalar* data, const int64_t stride[3], int64_t first,
                                       int count) {
   using T = typename L::Scalar;
+  if constexpr (!kContiguous && L::width > 1) {
+    if (count == L::width && is_soa_batch(stride)) {
+      Mat3<typename L::V> A;
+      for (int k = 0; k < 9; ++k) A.a[k] = L::load(data + first + entry_offset(stride, k));
+      return A;
+    }
+  }
 #ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
   if constexpr (kContiguous && L::width > 1) {
     if (count == L::width) {  // full block: in-register transposition
@@ -61,6 +77,12 @@ inline void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, 
     }
   }
 #endif
+  if constexpr (!kContiguous && L::width > 1) {
+    if (count == L::width && is_soa_batch(stride)) {
+      for (int k = 0; k < 9; ++k) L::store(R.a[k], data + first + entry_offset(stride, k));
+      return;
+    }
+  }
   alignas(64) T buf[9][L::width];
   for (int k = 0; k < 9; ++k) L::store(R.a[k], buf[k]);
   for (int j = 0; j < count; ++j)
