@@ -16,15 +16,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 
 import torch
 
 import torchrot
-from torchrot.testing import DISTRIBUTIONS, edge_case_matrices, make_matrices, random_rotations
+from torchrot.testing import DISTRIBUTIONS, cpu_kernel, edge_case_matrices, make_matrices, random_rotations
 
-ENV = "TORCHROT_CPU_CAPABILITY"
 ISAS = ("scalar", "default", "avx2", "avx512")
 INT_VIEW = {torch.float32: torch.int32, torch.float64: torch.int64, torch.int32: torch.int32,
             torch.uint8: torch.uint8}
@@ -98,10 +96,10 @@ def main() -> int:
     args = parser.parse_args()
     aten = torch.backends.cpu.get_cpu_capability()
     if args.action == "save":
-        os.environ[ENV] = "scalar"
-        assert torch.ops.torchrot.cpu_kernel() == "scalar"
-        data = {str(dtype).removeprefix("torch."): inputs(dtype) for dtype in (torch.float32, torch.float64)}
-        torch.save({"inputs": data, "results": results(data)}, args.file)
+        with cpu_kernel("scalar") as used:
+            assert used == "scalar"
+            data = {str(dtype).removeprefix("torch."): inputs(dtype) for dtype in (torch.float32, torch.float64)}
+            torch.save({"inputs": data, "results": results(data)}, args.file)
         print(json.dumps({"saved": args.file, "aten": aten}))
         return 0
     if args.expect_aten and aten != args.expect_aten:
@@ -112,13 +110,12 @@ def main() -> int:
     hardware = {"AVX512": "avx512", "AVX2": "avx2"}.get(aten, "default")
     report = {"aten": aten, "kernels": {}, "tensors_compared": 0, "mismatches": []}
     for request in ISAS:
-        os.environ[ENV] = request
-        kernel = torch.ops.torchrot.cpu_kernel()
-        expected_kernel = ISAS[min(ISAS.index(request), ISAS.index(hardware))]
-        if kernel != expected_kernel:
-            report["mismatches"].append(f"request {request} ran kernel {kernel}, expected {expected_kernel}")
-            continue
-        got = results(saved["inputs"])
+        with cpu_kernel(request) as kernel:  # capped at the hardware: never an instruction the CPU lacks
+            expected_kernel = ISAS[min(ISAS.index(request), ISAS.index(hardware))]
+            if kernel != expected_kernel:
+                report["mismatches"].append(f"request {request} ran kernel {kernel}, expected {expected_kernel}")
+                continue
+            got = results(saved["inputs"])
         report["kernels"][request] = kernel
         for name, ref in reference.items():
             report["tensors_compared"] += 1
