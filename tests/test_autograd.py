@@ -8,7 +8,6 @@ rank-deficient M, half-turns), torch.func, torch.compile, autocast, and errors.
 """
 from __future__ import annotations
 
-import math
 
 import pytest
 import torch

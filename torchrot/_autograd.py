@@ -19,11 +19,13 @@ iteration starts. With a finite ``max_iter`` the derivative is that of the
 exact maximiser, evaluated at the returned R.
 
 Registered here:
-  * ``torch.library.register_autograd`` on ``torchrot::fit_rotation`` (for
-    callers of ``torch.ops.torchrot.fit_rotation``; default damping);
-  * ``FitRotationFunction``, the ``torch.autograd.Function`` behind
-    :func:`torchrot.fit_rotation`, with a forward-mode ``jvp`` and a generated
-    vmap rule, so ``torch.func.grad / vmap / jacrev / jacfwd / jvp`` work;
+  * ``FitRotationFunction`` (forward-mode ``jvp``, generated vmap rule) as
+    the Autograd kernel of ``torchrot::fit_rotation``, and
+    ``_TangentFunction`` (raising when differentiated) as that of
+    ``torchrot::fit_rotation_backward``: first derivatives in reverse and
+    forward mode, under every torch.func transform and composition, in eager
+    and under torch.compile (which traces the operator; :func:`torchrot.
+    fit_rotation` calls it); second derivatives raise;
   * vmap rules for both operators, and autocast (CPU, CUDA) to float32.
 """
 from __future__ import annotations
@@ -32,7 +34,7 @@ import torch
 from torch._functorch.utils import enable_single_level_autograd_function, unwrap_dead_wrappers
 from torch.autograd import forward_ad
 
-from torchrot.reference import GRADIENT_EPS
+from torchrot._limits import GRADIENT_EPS
 
 
 def rotation_tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: float) -> torch.Tensor:

@@ -122,12 +122,12 @@ def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor
     else:
         p = weights / weights.sum(-1, keepdim=True)
     p_row = p.unsqueeze(-2)  # (..., 1, N)
-    x_mean = (p_row @ x).squeeze(-2)  # (..., 3)
-    y_mean = (p_row @ y).squeeze(-2)
+    x_mean = _matmul(p_row, x).squeeze(-2)  # (..., 3)
+    y_mean = _matmul(p_row, y).squeeze(-2)
     xc = x - x_mean.unsqueeze(-2)
     yc = y - y_mean.unsqueeze(-2)
     # M = sum_i p_i yc_i xc_i^T: (..., 3, N) @ (..., N, 3).
-    M = (yc.mT * p_row) @ xc
+    M = _matmul(yc.mT * p_row, xc)
     R = torchrot.fit_rotation(M, init)
     if scale:
         variance_x = (p * xc.square().sum(-1)).sum(-1)
@@ -136,8 +136,19 @@ def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor
         s = (R * M).sum((-2, -1)) / variance_x
     else:
         s = torch.ones(M.shape[:-2], dtype=M.dtype, device=M.device)
-    t = y_mean - s.unsqueeze(-1) * (R @ x_mean.unsqueeze(-1)).squeeze(-1)
+    t = y_mean - s.unsqueeze(-1) * _matmul(R, x_mean.unsqueeze(-1)).squeeze(-1)
     return R, t, s
+
+
+def _matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a @ b. Traced by torch.compile, as a broadcast product summed over the
+    inner dimension: dynamo fails on a matmul of a forward-AD dual with a
+    plain tensor under vmap (vmap(jvp(...)), "Tensor device mismatch ... meta
+    and cpu", pytorch/pytorch#151196); inductor fuses the sum into one
+    reduction. Equal to a @ b up to rounding."""
+    if torch.compiler.is_compiling():
+        return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+    return a @ b
 
 
 def _check_arguments(x, y, weights, scale, init) -> None:
