@@ -73,6 +73,14 @@ class _TangentFunction(torch.autograd.Function):
     jvp = staticmethod(lambda ctx, *tangents: _no_second_derivative(ctx, tangents))
 
 
+def _below_autograd(op, *args) -> torch.Tensor:
+    """``op(*args)`` straight to its kernel, past the operator's Python
+    Autograd kernel: for calls that record no derivative outside torch.func
+    (a Python kernel call costs more than a small fit)."""
+    with torch._C._AutoDispatchBelowAutograd():
+        return op(*args)
+
+
 def _tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: float) -> torch.Tensor:
     """rotation_tangent inside a derivative rule, where it must never be
     differentiated again.
@@ -87,6 +95,8 @@ def _tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: fl
     as zeros): if the tensors depend on such a differentiating level, raise.
     """
     if not torch._C._are_functorch_transforms_active():
+        if not torch.is_grad_enabled():  # backward without create_graph: nothing to record
+            return _below_autograd(_BACKWARD_OP, X, R, M, gradient_eps)
         return rotation_tangent(X, R, M, gradient_eps)
     if not torch._C._dispatch_tls_is_dispatch_key_excluded(_FUNCTORCH_FRONT):
         return _TangentFunction.apply(X, R, M, gradient_eps)
@@ -126,7 +136,10 @@ class FitRotationFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(M, init, max_iter, variant, gradient_eps):
-        # Both derivative modes are off here: the operator runs below autograd.
+        # Both derivative modes are off here: the operator runs below autograd
+        # (under torch.func through the dispatcher, for the levels below).
+        if not torch._C._are_functorch_transforms_active():
+            return _below_autograd(_FIT_OP, M, init, max_iter, variant, gradient_eps)
         return torch.ops.torchrot.fit_rotation(M, init, max_iter, variant, gradient_eps)
 
     @staticmethod
@@ -159,6 +172,14 @@ class FitRotationFunction(torch.autograd.Function):
 # where torch.compile traces it.
 
 _lib = torch.library.Library("torchrot", "IMPL")
+_FIT_OP = torch.ops.torchrot.fit_rotation.default
+_BACKWARD_OP = torch.ops.torchrot.fit_rotation_backward.default
+
+#: FitRotationFunction.apply without the per-call signature binding of
+#: autograd.Function.apply (the arguments are always complete), which costs
+#: several times a small fit. torchrot.fit_rotation applies it directly for
+#: plain reverse-mode calls (no torch.func, forward AD, autocast or tracing).
+apply_fit_rotation = super(torch.autograd.Function, FitRotationFunction).apply
 
 
 def _has_tangent(args) -> bool:

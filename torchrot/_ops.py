@@ -11,7 +11,7 @@ from typing import NamedTuple
 import torch
 from torch.autograd import forward_ad
 
-import torchrot._autograd  # noqa: F401  (registers the operators' derivatives)
+from torchrot._autograd import apply_fit_rotation  # (importing it registers the operators' derivatives)
 from torchrot._checks import (
     check_all,
     check_backward,
@@ -121,6 +121,10 @@ def fit_rotation(
             )
         torch.ops.torchrot.fit_rotation_out(M, init, max_iter, variant, out)
         return out
+    if differentiable and _plain_reverse_mode(M):
+        # The common training call: what the operator's Autograd kernel
+        # would do, without the Python kernel call around it.
+        return apply_fit_rotation(M, init, max_iter, variant, gradient_eps)
     if differentiable or torch.compiler.is_compiling():
         # The operator's Autograd kernel (torchrot/_autograd.py) records the
         # derivatives in every mode (backward, forward AD, each torch.func
@@ -159,6 +163,18 @@ def _check_call(M, init, max_iter, variant, gradient_eps, out=None) -> None:
             check_all(M, init, max_iter, variant)
             check_out(M, out)
         check_gradient_eps(gradient_eps)
+
+
+def _plain_reverse_mode(M: torch.Tensor) -> bool:
+    """Reverse mode only, on a plain float32/float64 tensor: no torch.func
+    level, forward AD, tracing or reduced precision (autocast casts those)."""
+    return (
+        type(M) is torch.Tensor
+        and M.dtype in (torch.float32, torch.float64)
+        and forward_ad._current_level < 0
+        and not torch._C._are_functorch_transforms_active()
+        and not torch.compiler.is_compiling()
+    )
 
 
 def _needs_derivative(M: torch.Tensor) -> bool:
