@@ -5,7 +5,7 @@ memory copy and torchrot, timed in one run on the same data: the README table.
     python benchmarks/paper_methods.py --n 1e6 --data warm rot60 uniform --json out.json
     python benchmarks/paper_methods.py --wide           # the README table
 
-Rows come from ``torchrot.benchmark.run_case`` (medians of ``--repeats``
+Rows come from ``torchrot.bench.micro.run_case`` (medians of ``--repeats``
 ``blocked_autorange`` medians; accuracy against float64 SVD on every matrix).
 Methods with ``sample_n`` (Mueller's converged mode) run on the first matrices
 only; their N column says how many.
@@ -20,19 +20,18 @@ from dataclasses import asdict
 
 import torch
 
-from torchrot.apps.datasets import RECORDED
-from torchrot.benchmark import PAPER, all_methods, machine_info, run_case
+from torchrot.bench.data import RECORDED, pairs
+from torchrot.bench.micro import PAPER, WARM_DATA, all_methods, machine_info, run_case
 from torchrot.testing import DISTRIBUTIONS
 
-TORCHROT_ROWS = ("torchrot 1-step warm, conservative", "torchrot converged cold, conservative", "torchrot converged warm")
+TORCHROT_MODES = ("one_step", "converged_cold", "converged_warm")  # conservative variant
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 def selected_methods():
     """copy_, torch.linalg.svd, three torchrot modes and every paper method."""
-    keep = ("copy_ (memory floor)", "torch.linalg.svd") + TORCHROT_ROWS
     return [m for m in all_methods(None, ("conservative",), first_touch=False, comparison_n=None)
-            if m.group == PAPER or m.name in keep]
+            if m.group == PAPER or m.key in ("copy", "svd") or m.mode in TORCHROT_MODES]
 
 
 def _fmt(x, spec: str) -> str:
@@ -78,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", nargs="+", default=["warm", "rot60", "uniform"],
                         choices=sorted(DISTRIBUTIONS) + list(RECORDED),
                         help="generated distributions or the recorded ARAP/elasticity data (recorded on first "
-                             "use into $TORCHROT_CACHE, see torchrot.apps.datasets)")
+                             "use into $TORCHROT_CACHE, see torchrot.bench.data)")
     parser.add_argument("--dtype", default="float32", choices=sorted(DTYPES))
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=5)
@@ -89,8 +88,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"machine: {machine_info()}; load average {os.getloadavg()} (shared machine: medians of runs)")
     rows = []
     for data in args.data:
-        rows += run_case("methods", data, args.n, DTYPES[args.dtype], args.threads, selected_methods(),
-                         args.repeats, args.min_run_time, log=lambda line: print(line, file=sys.stderr))
+        M, init = pairs(data, args.n, DTYPES[args.dtype])
+        rows += run_case("methods", data, M, init, args.threads, selected_methods(), args.repeats,
+                         args.min_run_time, log=lambda line: print(line, file=sys.stderr),
+                         warm=data in WARM_DATA or data in RECORDED)
     print(f"load average at the end: {os.getloadavg()}")
     print(table(rows))
     if args.wide:

@@ -40,7 +40,7 @@ from torch import nn
 
 import torchrot
 from torchrot import baselines
-from torchrot.benchmark import machine_info
+from torchrot.bench.micro import machine_info
 from torchrot.testing import make_matrices, random_rotations
 
 METHODS = ("torchrot", "svd")

@@ -26,9 +26,9 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from torchrot.apps.local_step import RotationFit
+from torchrot.apps._phases import phase
+from torchrot.apps.local_step import LocalStep
 from torchrot.apps.sparse import SpdSolver, torch_csr
-from torchrot.apps.timing import PhaseTimer
 
 Tensor = torch.Tensor
 
@@ -64,9 +64,8 @@ class ArapSolver:
     Args:
         V: ``(n, 3)`` rest positions; F: ``(f, 3)`` triangles (int).
         handles: indices of the vertices whose positions are prescribed.
-        fit: how the local step fits rotations (SVD / one step / converged).
-        timer: collects the time of each phase ("assembly", "fit", "rhs",
-            "solve") per iteration.
+        fit: how the local step fits rotations (SVD / one step / converged);
+            each step method also takes a ``fit`` for that call.
         dtype: precision of the local step (covariances, rotation fit) and
             of the right-hand side's product with the rotations; positions,
             energies and the solve are always float64. float32 is the
@@ -76,8 +75,7 @@ class ArapSolver:
     V: np.ndarray
     F: np.ndarray
     handles: np.ndarray
-    fit: RotationFit = field(default_factory=RotationFit)
-    timer: PhaseTimer = field(default_factory=PhaseTimer)
+    fit: LocalStep = field(default_factory=LocalStep)
     dtype: torch.dtype = torch.float64
 
     def __post_init__(self) -> None:
@@ -128,24 +126,28 @@ class ArapSolver:
             return (self._C64 @ P.double()).view(self.n, 3, 3)
         return (self._C @ P.to(dtype)).view(self.n, 3, 3)
 
-    def local_step(self, state: ArapState, recorder=None, meta: dict | None = None) -> Tensor:
-        """Fits the rotations of ``state.P`` warm-started from ``state.Rt``;
-        returns the new Rt ``(n, 3, 3)``. ``recorder(M, R_prev, meta)``, if
-        given, sees each step's covariances M and warm start R_prev (torchrot
-        convention, untransposed) before the fit."""
-        with self.timer.phase("assembly"):
+    def local_step(self, state: ArapState, recorder=None, meta: dict | None = None, *,
+                   fit: LocalStep | None = None, timer=None) -> Tensor:
+        """Fits the rotations of ``state.P`` warm-started from ``state.Rt``
+        with ``fit`` (default: the solver's); returns the new Rt ``(n, 3, 3)``.
+        ``recorder(M, R_prev, meta)``, if given, sees each step's covariances
+        M and warm start R_prev (torchrot convention, untransposed) before the
+        fit. ``timer``: optional, its ``phase(name)`` contexts time "assembly"
+        and "fit" (see :mod:`torchrot.apps._phases`)."""
+        with phase(timer, "assembly"):
             Mt = self.covariances_t(state.P, self.dtype)
         if recorder is not None:
             recorder(Mt.mT, None if state.Rt is None else state.Rt.mT, meta or {})
-        with self.timer.phase("fit"):
-            return self.fit(Mt, state.Rt)
+        with phase(timer, "fit"):
+            return (fit or self.fit)(Mt, state.Rt)
 
-    def global_step(self, Rt: Tensor, targets: np.ndarray) -> Tensor:
+    def global_step(self, Rt: Tensor, targets: np.ndarray, *, timer=None) -> Tensor:
         """Positions ``(n, 3)`` minimising E for fixed rotations (given as
-        Rt ``(n, 3, 3)``) with the handles at ``targets`` ``(h, 3)``."""
-        with self.timer.phase("rhs"):
+        Rt ``(n, 3, 3)``) with the handles at ``targets`` ``(h, 3)``;
+        ``timer`` times "rhs" and "solve"."""
+        with phase(timer, "rhs"):
             b = (self._B @ Rt.reshape(-1, 3)).double().numpy()
-        with self.timer.phase("solve"):
+        with phase(timer, "solve"):
             P = np.empty((self.n, 3))
             P[self.handles] = targets
             P[self.free] = self._K_free.solve(b[self.free] - self._handle_terms(targets))
@@ -158,10 +160,11 @@ class ArapSolver:
             self._last_terms = self._K_handles @ self._last_targets
         return self._last_terms
 
-    def iterate(self, state: ArapState, targets: np.ndarray, recorder=None, meta: dict | None = None) -> ArapState:
+    def iterate(self, state: ArapState, targets: np.ndarray, recorder=None, meta: dict | None = None, *,
+                fit: LocalStep | None = None, timer=None) -> ArapState:
         """One local-global iteration: new rotations, then new positions."""
-        Rt = self.local_step(state, recorder, meta)
-        return ArapState(self.global_step(Rt, targets), Rt)
+        Rt = self.local_step(state, recorder, meta, fit=fit, timer=timer)
+        return ArapState(self.global_step(Rt, targets, timer=timer), Rt)
 
     # -- energy ----------------------------------------------------------------
     def energy(self, P: Tensor, Rt: Tensor | None = None) -> float:
@@ -171,7 +174,7 @@ class ArapSolver:
         Uses sum_ij w_ij |e'_ij - R_i e_ij|^2 = 2 tr(P^T K P) + 2 tr(V^T K V)
         - 2 sum_i tr(R_i^T M_i) (each edge appears once per end point)."""
         Mt = self.covariances_t(P)
-        Rt = RotationFit("converged")(Mt, None) if Rt is None else Rt.double()
+        Rt = LocalStep("converged")(Mt, None) if Rt is None else Rt.double()
         Pn = P.numpy()
         quadratic = float(np.sum(Pn * (self.K @ Pn))) + self._rest_energy
         return 2.0 * quadratic - 2.0 * float((Rt * Mt).sum())

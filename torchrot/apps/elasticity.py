@@ -40,9 +40,9 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from torchrot.apps.local_step import RotationFit
+from torchrot.apps._phases import phase
+from torchrot.apps.local_step import LocalStep
 from torchrot.apps.sparse import SpdSolver, torch_csr
-from torchrot.apps.timing import PhaseTimer
 
 Tensor = torch.Tensor
 
@@ -98,10 +98,9 @@ class ElasticitySolver:
     Args:
         V: ``(n, 3)`` rest positions; T: ``(t, 4)`` positively oriented tets.
         material: :class:`Material`.
-        fit: how the local step fits rotations.
+        fit: how the local step fits rotations (:meth:`step` also takes a
+            ``fit`` for one time step, and a ``timer``).
         iterations: local-global iterations per time step.
-        timer: phase times per iteration ("assembly", "fit", "rhs", "solve";
-            "refactor" per time step whose contact set changed).
         dtype: precision of the local step (deformation gradients, rotation
             fit) and of the right-hand side's product with the rotations;
             positions, energies and the solve are float64.
@@ -110,9 +109,8 @@ class ElasticitySolver:
     V: np.ndarray
     T: np.ndarray
     material: Material = field(default_factory=Material)
-    fit: RotationFit = field(default_factory=RotationFit)
+    fit: LocalStep = field(default_factory=LocalStep)
     iterations: int = 5
-    timer: PhaseTimer = field(default_factory=PhaseTimer)
     dtype: torch.dtype = torch.float64
 
     def __post_init__(self) -> None:
@@ -156,23 +154,24 @@ class ElasticitySolver:
             return (self._D64 @ x.double()).view(self.m, 3, 3)
         return (self._D @ x.to(dtype)).view(self.m, 3, 3)
 
-    def local_step(self, x: Tensor, Rt_prev: Tensor | None, recorder=None, meta: dict | None = None) -> Tensor:
+    def local_step(self, x: Tensor, Rt_prev: Tensor | None, recorder=None, meta: dict | None = None, *,
+                   fit: LocalStep | None = None, timer=None) -> Tensor:
         """Fits R_t to every F_t(x), warm-started from Rt_prev; returns the new
         Rt ``(t, 3, 3)``. ``recorder(M, R_prev, meta)`` sees M = F (torchrot
         convention) and the warm start before the fit."""
-        with self.timer.phase("assembly"):
+        with phase(timer, "assembly"):
             Ft = self.gradients_t(x, self.dtype)
         if recorder is not None:
             recorder(Ft.mT, None if Rt_prev is None else Rt_prev.mT, meta or {})
-        with self.timer.phase("fit"):
-            return self.fit(Ft, Rt_prev)
+        with phase(timer, "fit"):
+            return (fit or self.fit)(Ft, Rt_prev)
 
-    def global_step(self, Rt: Tensor, inertial_rhs: np.ndarray) -> Tensor:
+    def global_step(self, Rt: Tensor, inertial_rhs: np.ndarray, *, timer=None) -> Tensor:
         """Positions ``(n, 3)`` minimising Phi for fixed rotations (given as
         Rt ``(t, 3, 3)``), the active contact vertices' z on the ground."""
-        with self.timer.phase("rhs"):
+        with phase(timer, "rhs"):
             rhs = inertial_rhs + 2.0 * self.material.mu * (self._B @ Rt.reshape(-1, 3)).double().numpy()
-        with self.timer.phase("solve"):
+        with phase(timer, "solve"):
             x = np.empty_like(rhs)
             x[:, :2] = self._solver.solve(rhs[:, :2])
             x[:, 2] = self.material.ground
@@ -183,12 +182,12 @@ class ElasticitySolver:
         self._last_rhs_z = rhs[:, 2]
         return torch.from_numpy(x)
 
-    def _set_contacts(self, active: np.ndarray) -> None:
+    def _set_contacts(self, active: np.ndarray, timer=None) -> None:
         """Holds the ``active`` vertices' z on the ground from now on;
         refactors the z system if the set changed."""
         if np.array_equal(active, self._active):
             return
-        with self.timer.phase("refactor"):
+        with phase(timer, "refactor"):
             self._active = active
             self._free_z = np.flatnonzero(~active)
             if active.any():
@@ -206,25 +205,27 @@ class ElasticitySolver:
         x_tilde[:, 2] -= h * h * self.material.gravity
         return x_tilde
 
-    def step(self, state: ElasticState, recorder=None, frame: int = 0,
-             energies: list | None = None) -> ElasticState:
+    def step(self, state: ElasticState, recorder=None, frame: int = 0, energies: list | None = None, *,
+             fit: LocalStep | None = None, timer=None) -> ElasticState:
         """One time step: ``iterations`` local-global iterations from x~
         (with the predicted contacts on the ground), then the contact
         clean-up. ``energies``, if given, receives Phi after every local and
-        every global step (for monotonicity checks)."""
+        every global step (for monotonicity checks). ``fit``: the local
+        step for this time step (default: the solver's); ``timer``: optional
+        phase timer ("assembly", "fit", "rhs", "solve", "refactor")."""
         h = self.material.dt
         x_tilde = self.predicted(state)
         predicted = x_tilde[:, 2] < self.material.ground
-        self._set_contacts(predicted if state.released is None else predicted & ~state.released)
+        self._set_contacts(predicted if state.released is None else predicted & ~state.released, timer)
         inertial_rhs = (self.mass / h**2)[:, None] * x_tilde
         x0 = x_tilde.copy()
         x0[self._active, 2] = self.material.ground  # a feasible start
         x, Rt = torch.from_numpy(x0), state.Rt
         for iteration in range(self.iterations):
-            Rt = self.local_step(x, Rt, recorder, {"frame": frame, "iteration": iteration})
+            Rt = self.local_step(x, Rt, recorder, {"frame": frame, "iteration": iteration}, fit=fit, timer=timer)
             if energies is not None:
                 energies.append(self.incremental_potential(x, Rt, x_tilde))
-            x = self.global_step(Rt, inertial_rhs)
+            x = self.global_step(Rt, inertial_rhs, timer=timer)
             if energies is not None:
                 energies.append(self.incremental_potential(x, Rt, x_tilde))
         released = self._adhesion(x)
@@ -257,7 +258,7 @@ class ElasticitySolver:
     def incremental_potential(self, x: Tensor, Rt: Tensor | None, x_tilde: np.ndarray) -> float:
         """Phi(x, R) of one time step (R = the optimal rotations if Rt is None)."""
         Ft = self.gradients_t(x)
-        Rt = RotationFit("converged")(Ft, None) if Rt is None else Rt.double()
+        Rt = LocalStep("converged")(Ft, None) if Rt is None else Rt.double()
         vol = torch.from_numpy(self.volumes)
         elastic = self.material.mu * float((vol * ((Ft - Rt) ** 2).sum((-2, -1))).sum())
         d = x.numpy() - x_tilde
@@ -267,7 +268,7 @@ class ElasticitySolver:
     def elastic_energy(self, x: Tensor) -> float:
         """mu sum_t vol_t dist(F_t, SO(3))^2 of positions ``x`` ``(n, 3)``."""
         Ft = self.gradients_t(x)
-        Rt = RotationFit("converged")(Ft, None)
+        Rt = LocalStep("converged")(Ft, None)
         return self.material.mu * float((torch.from_numpy(self.volumes) * ((Ft - Rt) ** 2).sum((-2, -1))).sum())
 
     def initial_state(self, lift: float = 0.25, tilt_degrees: float = 20.0, spin: float = 1.0) -> ElasticState:

@@ -1,7 +1,7 @@
 """The rotation fit of a local-global solver's local step, selectable.
 
 Every solver in :mod:`torchrot.apps` hands its covariances to a
-:class:`RotationFit`, so the same session can run with the SVD, with the
+:class:`LocalStep`, so the same session can run with the SVD, with the
 paper's one-step warm start, or with torchrot converged from the warm start.
 
 Convention: the fitted R (det +1) maximises tr(R^T M); column vectors, for
@@ -19,7 +19,7 @@ import torchrot
 
 Tensor = torch.Tensor
 
-#: method name -> what it computes (``RotationFit.method``).
+#: method name -> what it computes (``LocalStep.method``).
 METHODS = {
     "svd": "torch.linalg.svd special Procrustes (U diag(1, 1, det UV^T) V^T), ignores the warm start",
     "one_step": "torchrot, one Cayley step from the previous rotations (max_iter=1): the paper's warm start",
@@ -28,7 +28,7 @@ METHODS = {
 
 
 @dataclass
-class RotationFit:
+class LocalStep:
     """Fits ``(n, 3, 3)`` rotations to ``(n, 3, 3)`` covariances.
 
     method: ``"svd"``, ``"one_step"`` or ``"converged"`` (see METHODS).
@@ -50,9 +50,9 @@ class RotationFit:
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
-            raise ValueError(f"RotationFit: method must be one of {sorted(METHODS)}, got {self.method!r}")
+            raise ValueError(f"LocalStep: method must be one of {sorted(METHODS)}, got {self.method!r}")
         if self.variant not in ("newton", "conservative", "gershgorin"):
-            raise ValueError(f"RotationFit: variant must be 'newton', 'conservative' or 'gershgorin', "
+            raise ValueError(f"LocalStep: variant must be 'newton', 'conservative' or 'gershgorin', "
                              f"got {self.variant!r}")
 
     @property
@@ -72,7 +72,7 @@ class RotationFit:
         if self.method == "converged" or R_prev is None:
             return torchrot.fit_rotation(M, R_prev, variant=self.variant, out=out)
         if self.monotone and out is not None and out.data_ptr() == R_prev.data_ptr():
-            raise ValueError("RotationFit: with monotone=True, out must not be R_prev (it is compared with it)")
+            raise ValueError("LocalStep: with monotone=True, out must not be R_prev (it is compared with it)")
         R = torchrot.fit_rotation(M, R_prev, max_iter=1, variant=self.variant, out=out)
         if self.monotone:
             keep_better(R, R_prev, M)

@@ -1,10 +1,10 @@
 """Named data sets of covariance matrices recorded from the solvers, cached.
 
-``"arap"``: an interactive ARAP session (:class:`~torchrot.apps.sessions.HandleScript`)
+``"arap"``: an interactive ARAP session (:class:`~torchrot.bench.sessions.HandleScript`)
 on the built-in 57,346-vertex capsule (or a user surface); ``"elasticity"``:
 the built-in tetrahedral octopus (24,054 tets) dropped onto the ground
-(:class:`~torchrot.apps.sessions.DropScript`). Each is recorded with
-:class:`~torchrot.apps.recording.Recorder` (M, the warm start R_prev and
+(:class:`~torchrot.bench.sessions.DropScript`). Each is recorded with
+:class:`~torchrot.bench.recording.Recorder` (M, the warm start R_prev and
 M_local = R_prev^T M of every local step) into a cache folder named after a
 hash of its configuration, so the second request loads it instead of running
 the solver again.
@@ -14,7 +14,6 @@ Cache root: the ``cache`` argument, else ``$TORCHROT_CACHE``, else
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -23,11 +22,10 @@ import os
 import shutil
 import time
 from dataclasses import dataclass
-from typing import Iterator
 
 import torch
 
-from torchrot.apps.recording import Recorder, Recording, is_complete, load_recording
+from torchrot.bench.recording import Recorder, Recording, is_complete, load_recording
 
 #: Bumped whenever the generators change what they record (old caches are then ignored).
 DATA_VERSION = 1
@@ -115,14 +113,14 @@ def _progress_bar(total: int, desc: str, enabled: bool):
 
 def _generate_arap(config: ArapDataConfig, folder: str, progress: bool) -> dict:
     from torchrot.apps.arap import ArapSolver
-    from torchrot.apps.local_step import RotationFit
+    from torchrot.apps.local_step import LocalStep
     from torchrot.apps.meshes import capsule, load_surface
-    from torchrot.apps.sessions import HandleScript, run_arap_session
+    from torchrot.bench.sessions import HandleScript, run_arap_session
 
     mesh = load_surface(config.mesh_path) if config.mesh_path else capsule(config.resolution)
     script = HandleScript(frames=config.frames)
     handles, _ = script.handles(mesh.V)
-    solver = ArapSolver(mesh.V, mesh.F, handles, RotationFit(config.fit))
+    solver = ArapSolver(mesh.V, mesh.F, handles, LocalStep(config.fit))
     recorder = Recorder(folder, "arap", mesh.name, config.max_per_step)
     bar = _progress_bar(config.frames, f"recording arap ({len(mesh.V):,} vertices)", progress)
     run_arap_session(solver, script, config.iterations, recorder, bar.update if bar else None)
@@ -134,12 +132,12 @@ def _generate_arap(config: ArapDataConfig, folder: str, progress: bool) -> dict:
 
 def _generate_elasticity(config: ElasticityDataConfig, folder: str, progress: bool) -> dict:
     from torchrot.apps.elasticity import ElasticitySolver
-    from torchrot.apps.local_step import RotationFit
+    from torchrot.apps.local_step import LocalStep
     from torchrot.apps.meshes import octopus
-    from torchrot.apps.sessions import DropScript, run_elasticity_session
+    from torchrot.bench.sessions import DropScript, run_elasticity_session
 
     mesh = octopus(config.resolution)
-    solver = ElasticitySolver(mesh.V, mesh.F, fit=RotationFit(config.fit), iterations=config.iterations)
+    solver = ElasticitySolver(mesh.V, mesh.F, fit=LocalStep(config.fit), iterations=config.iterations)
     script = DropScript(frames=config.frames)
     recorder = Recorder(folder, "elasticity", mesh.name, config.max_per_step)
     bar = _progress_bar(config.frames, f"recording elasticity ({len(mesh.F):,} tets)", progress)
@@ -186,7 +184,8 @@ def load_dataset(name: str, config=None, cache: str | None = None, progress: boo
 
 
 def warm_start_pairs(name: str, n: int, seed: int = 0, dtype: torch.dtype = torch.float64,
-                     config=None, cache: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                     config=None, cache: str | None = None,
+                     progress: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """``(M, init)`` ``(n, 3, 3)`` for the benchmark, like
     :func:`torchrot.testing.make_warm_start`: recorded covariances M and the
     warm starts R_prev the solver had for them, so the answer is close to init.
@@ -196,7 +195,7 @@ def warm_start_pairs(name: str, n: int, seed: int = 0, dtype: torch.dtype = torc
     """
     if n < 1:
         raise ValueError(f"warm_start_pairs: n must be >= 1, got {n}")
-    recording = load_dataset(name, config, cache)
+    recording = load_dataset(name, config, cache, progress)
     total = len(recording)
     gen = torch.Generator().manual_seed(seed)
     copies, rest = divmod(n, total)
@@ -204,32 +203,14 @@ def warm_start_pairs(name: str, n: int, seed: int = 0, dtype: torch.dtype = torc
     return recording.M[index].to(dtype), recording.R_prev[index].to(dtype)
 
 
-_ACTIVE: dict = {"configs": dict(DEFAULTS), "cache": None}
-
-
-@contextlib.contextmanager
-def active(configs: dict | None = None, cache: str | None = None) -> Iterator[None]:
-    """Within the block, :func:`benchmark_data` finds the recorded data sets
-    with these configurations (name -> config; others keep theirs) in this
-    cache folder."""
-    previous = {"configs": dict(_ACTIVE["configs"]), "cache": _ACTIVE["cache"]}
-    for name, config in (configs or {}).items():
-        _ACTIVE["configs"][name] = _config(name, config)
-    if cache is not None:
-        _ACTIVE["cache"] = cache
-    try:
-        yield
-    finally:
-        _ACTIVE.update(previous)
-
-
-def benchmark_data(name: str, n: int, seed: int = 0,
-                   dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(M, init)`` for the benchmark by data set name: the recorded data
-    sets (:data:`RECORDED`; default configurations and cache unless set by
-    :func:`active`) or any distribution of :func:`torchrot.testing.make_warm_start`."""
+def pairs(name: str, n: int, dtype: torch.dtype = torch.float64, seed: int = 0, configs: dict | None = None,
+          cache: str | None = None, progress: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(M, init)`` ``(n, 3, 3)`` of data set ``name``: a recorded data set
+    (:data:`RECORDED`, with its configuration from ``configs``, name ->
+    config, else the default, from ``cache``) or any distribution of
+    :func:`torchrot.testing.make_warm_start`."""
     if name in RECORDED:
-        return warm_start_pairs(name, n, seed, dtype, _ACTIVE["configs"][name], _ACTIVE["cache"])
+        return warm_start_pairs(name, n, seed, dtype, (configs or {}).get(name), cache, progress)
     from torchrot.testing import make_warm_start
 
     return make_warm_start(name, n, seed, dtype)

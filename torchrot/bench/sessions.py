@@ -10,7 +10,7 @@ interactive tool would.
 Elasticity: a tetrahedral body dropped onto the ground plane, tilted and
 spinning; each frame is one implicit time step.
 
-Both take an optional recorder (:class:`torchrot.apps.recording.Recorder`)
+Both take an optional recorder (:class:`torchrot.bench.recording.Recorder`)
 that sees every local step.
 """
 from __future__ import annotations
@@ -23,6 +23,7 @@ import numpy as np
 
 from torchrot.apps.arap import ArapSolver, ArapState
 from torchrot.apps.elasticity import ElasticitySolver, ElasticState
+from torchrot.apps.local_step import LocalStep
 from torchrot.apps.meshes import end_regions
 
 
@@ -83,7 +84,8 @@ class HandleScript:
 
 def run_arap_session(solver: ArapSolver, script: HandleScript, iterations: int,
                      recorder: Callable | None = None, progress: Callable[[int], None] | None = None,
-                     energies: list | None = None, state: ArapState | None = None) -> ArapState:
+                     energies: list | None = None, state: ArapState | None = None, *,
+                     fit: LocalStep | None = None, timer=None) -> ArapState:
     """Runs every frame of ``script`` with ``iterations`` local-global
     iterations each; returns the last state. ``energies`` receives
     (frame, iteration, E after the local step, E after the global step)."""
@@ -95,9 +97,9 @@ def run_arap_session(solver: ArapSolver, script: HandleScript, iterations: int,
     for frame in range(script.frames):
         targets = script.targets_at(V, handles, moving, frame / max(script.frames - 1, 1))
         for iteration in range(iterations):
-            Rt = solver.local_step(state, recorder, {"frame": frame, "iteration": iteration})
+            Rt = solver.local_step(state, recorder, {"frame": frame, "iteration": iteration}, fit=fit, timer=timer)
             after_local = solver.energy(state.P, Rt) if energies is not None else None
-            state = ArapState(solver.global_step(Rt, targets), Rt)
+            state = ArapState(solver.global_step(Rt, targets, timer=timer), Rt)
             if energies is not None:
                 energies.append((frame, iteration, after_local, solver.energy(state.P, Rt)))
         if progress is not None:
@@ -118,11 +120,12 @@ class DropScript:
 
 def run_elasticity_session(solver: ElasticitySolver, script: DropScript, recorder: Callable | None = None,
                            progress: Callable[[int], None] | None = None,
-                           state: ElasticState | None = None) -> ElasticState:
+                           state: ElasticState | None = None, *, fit: LocalStep | None = None,
+                           timer=None) -> ElasticState:
     """Runs ``script.frames`` time steps; returns the last state."""
     state = state or solver.initial_state(script.lift, script.tilt_degrees, script.spin)
     for frame in range(script.frames):
-        state = solver.step(state, recorder, frame)
+        state = solver.step(state, recorder, frame, fit=fit, timer=timer)
         if progress is not None:
             progress(1)
     return state

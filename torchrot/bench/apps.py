@@ -1,10 +1,10 @@
 """The applications part of ``python -m torchrot bench``: the paper's
 Tables 1-2 and Figs. 5-7 on the built-in solver data.
 
-:func:`run_apps` records (or loads from the cache) the "arap" and
-"elasticity" data sets, computes their Fig. 5 statistics, times every
-benchmark method on them (Tables 1 and 2), runs the solver experiments (Figs.
-6 and 7, the libigl validation) and evaluates the targets;
+:func:`apps_cases` lists its stages: record (or load from the cache) the
+"arap" and "elasticity" data sets and compute their Fig. 5 statistics, time
+every benchmark method on them (Tables 1 and 2), run the solver experiments
+(Figs. 6 and 7, the libigl validation); :func:`run_apps` runs them all.
 :func:`write_apps` writes ``apps.json`` (every number), ``apps.md`` and
 ``fig5_data.png``, ``fig6_local_global.png``, ``fig7_energy_time.png``.
 """
@@ -19,10 +19,10 @@ from typing import Callable
 
 import torch
 
-from torchrot.apps import datasets, experiments, figures, report
 from torchrot.apps.meshes import capsule, load_surface, octopus
-from torchrot.apps.sessions import DropScript, HandleScript
-from torchrot.apps.statistics import recording_statistics
+from torchrot.bench import data, experiments, figures, micro, report
+from torchrot.bench.sessions import DropScript, HandleScript
+from torchrot.bench.statistics import recording_statistics
 
 
 @dataclass
@@ -45,14 +45,16 @@ class AppsPlan:
         the paper's; Fig. 7 and the validation run in float64).
     """
 
-    arap: datasets.ArapDataConfig = field(default_factory=datasets.ArapDataConfig)
-    elasticity: datasets.ElasticityDataConfig = field(default_factory=datasets.ElasticityDataConfig)
+    arap: data.ArapDataConfig = field(default_factory=data.ArapDataConfig)
+    elasticity: data.ElasticityDataConfig = field(default_factory=data.ElasticityDataConfig)
     table_n: int = 100_000
     dtypes: tuple[torch.dtype, ...] = (torch.float32,)
     repeats: int = 5
     min_run_time: float = 0.1
     all_isas: bool = False
     comparison_n: int | None = 20_000
+    slow_repeats: int | None = None  # timed runs of the comparison methods (None: repeats)
+    statistics_sample: int = 200_000
     timing_frames: int = 6
     timing_iterations: int = 4
     elasticity_timing_frames: int = 8
@@ -65,9 +67,17 @@ class AppsPlan:
     local_dtypes: tuple[torch.dtype, ...] = (torch.float32, torch.float64)
 
 
-QUICK = AppsPlan()
-FULL = AppsPlan(arap=datasets.ArapDataConfig(frames=60, max_per_step=6_000),  # 1.08M matrices
-                elasticity=datasets.ElasticityDataConfig(frames=90, max_per_step=2_400),  # 1.08M matrices
+#: The default run: the same stages at small sizes (a 14k-vertex capsule, a 3k-tet octopus,
+#: 5e3 matrices per table); ``--full``: the paper-scale run (57k vertices, 24k tets, 1e6 matrices).
+QUICK = AppsPlan(arap=data.ArapDataConfig(resolution=32, frames=16, iterations=3, max_per_step=1_000),
+                 elasticity=data.ElasticityDataConfig(resolution=12, frames=24, iterations=4, max_per_step=400),
+                 table_n=5_000, repeats=3, min_run_time=0.02, comparison_n=500, slow_repeats=1,
+                 statistics_sample=40_000,
+                 timing_frames=3, timing_iterations=3, elasticity_timing_frames=3, trace_iterations=15,
+                 trace_reference_iterations=30, elasticity_trace_iterations=12, validation_resolution=6,
+                 validation_iterations=300)
+FULL = AppsPlan(arap=data.ArapDataConfig(frames=60, max_per_step=6_000),  # 1.08M matrices
+                elasticity=data.ElasticityDataConfig(frames=90, max_per_step=2_400),  # 1.08M matrices
                 table_n=1_000_000, dtypes=(torch.float32, torch.float64), all_isas=True, comparison_n=100_000,
                 timing_frames=10,
                 elasticity_timing_frames=16, trace_iterations=200, trace_reference_iterations=800,
@@ -78,67 +88,120 @@ def _arap_mesh(plan: AppsPlan):
     return load_surface(plan.arap.mesh_path) if plan.arap.mesh_path else capsule(plan.arap.resolution)
 
 
-def run_tables(plan: AppsPlan, cache: str | None, log: Callable[[str], None]) -> list:
-    """Every benchmark method on the recorded data (``torchrot.benchmark.run_case``):
-    Tables 1 and 2. torchrot runs with its scalar kernel (Table 1, the paper's
-    non-vectorized code) and its best kernel (Table 2)."""
-    from torchrot import benchmark
-
-    isas = benchmark.supported_isas()
-    kernels = ["scalar", isas[-1]] if not plan.all_isas else isas
-    methods = benchmark.all_methods(kernels, ("newton", "conservative"), comparison_n=plan.comparison_n)
-    rows = []
-    with datasets.active({"arap": plan.arap, "elasticity": plan.elasticity}, cache):
-        for dtype in plan.dtypes:
-            for name in datasets.RECORDED:
-                rows += benchmark.run_case("apps", name, plan.table_n, dtype, 1, methods, plan.repeats,
-                                           plan.min_run_time, log)
-    return rows
+def table_methods(plan: AppsPlan) -> list[micro.Method]:
+    """Every benchmark method; torchrot with its scalar kernel (Table 1, the
+    paper's non-vectorized code) and its best kernel (Table 2), or every kernel."""
+    isas = micro.supported_isas()
+    kernels = isas if plan.all_isas else ["scalar", isas[-1]]
+    return micro.all_methods(kernels, ("newton", "conservative"), comparison_n=plan.comparison_n)
 
 
-def run_apps(plan: AppsPlan = QUICK, cache: str | None = None, tables: bool = True,
-             log: Callable[[str], None] = print, progress: bool = True) -> tuple[dict, list]:
-    """Runs the applications part; returns (results, benchmark rows)."""
-    clock = time.perf_counter()
-    results: dict = {"plan": _plain_plan(plan), "load_average_at_start": list(os.getloadavg()),
-                     "datasets": {}, "statistics": {}}
-    for name, config in (("arap", plan.arap), ("elasticity", plan.elasticity)):
-        log(f"data set {name}: {datasets.dataset_folder(name, config, cache)}")
-        recording = datasets.load_dataset(name, config, cache, progress)
+def run_table(plan: AppsPlan, name: str, dtype: torch.dtype, cache: str | None,
+              log: Callable[[str], None] = print, methods: list[micro.Method] | None = None) -> list[micro.Row]:
+    """Tables 1 and 2 rows of recorded data set ``name``: ``plan.table_n``
+    matrices drawn from it, every method, 1 thread (as the paper)."""
+    M, init = data.pairs(name, plan.table_n, dtype, configs={"arap": plan.arap, "elasticity": plan.elasticity},
+                         cache=cache)
+    return micro.run_case("apps", name, M, init, 1, methods or table_methods(plan), plan.repeats,
+                          plan.min_run_time, log, warm=True, slow_repeats=plan.slow_repeats)
+
+
+def _arap_mesh(plan: AppsPlan):
+    return load_surface(plan.arap.mesh_path) if plan.arap.mesh_path else capsule(plan.arap.resolution)
+
+
+def _label(dtype: torch.dtype) -> str:
+    return str(dtype).replace("torch.", "")
+
+
+def apps_cases(plan: AppsPlan, cache: str | None = None, tables: bool = True, log: Callable[[str], None] = print,
+               progress: bool = True) -> tuple[list[tuple[str, Callable[[], None]]], dict, list]:
+    """The applications part as stages: (title, run) pairs to run in order,
+    which fill the returned ``results`` dict and ``rows`` list."""
+    results: dict = {"plan": _plain_plan(plan), "datasets": {}, "statistics": {}, "timings": {}}
+    rows: list = []
+    configs = {"arap": plan.arap, "elasticity": plan.elasticity}
+    cases: list[tuple[str, Callable[[], None]]] = []
+    clock: dict = {}
+
+    def start() -> None:
+        clock["start"] = time.perf_counter()
+        results["load_average_at_start"] = list(os.getloadavg())
+
+    def record(name: str) -> None:
+        if not clock:
+            start()
+        folder = data.dataset_folder(name, configs[name], cache)
+        cached = data.is_complete(folder)
+        log(f"  {'loading' if cached else 'recording'} {folder}")
+        recording = data.load_dataset(name, configs[name], cache, progress)
         results["datasets"][name] = recording.manifest
-        log(f"  {len(recording):,} recorded matrices ({recording.manifest['steps']} local steps); statistics")
-        results["statistics"][name] = recording_statistics(recording)
-    rows = []
+        log(f"  {len(recording):,} recorded matrices ({recording.manifest['steps']} local steps); Fig. 5 statistics")
+        results["statistics"][name] = recording_statistics(recording, sample=plan.statistics_sample)
+
+    for name in data.RECORDED:
+        cases.append((f"data set {name!r}: record (or load from the cache), Fig. 5 statistics",
+                      lambda name=name: record(name)))
     if tables:
-        rows = run_tables(plan, cache, log)
-    mesh, tets = _arap_mesh(plan), octopus(plan.elasticity.resolution)
+        methods = table_methods(plan)
+        for dtype in plan.dtypes:
+            for name in data.RECORDED:
+                cases.append((f"Tables 1-2: every method on {name} data, {_label(dtype)}, N = {plan.table_n:,}",
+                              lambda name=name, dtype=dtype: rows.extend(
+                                  run_table(plan, name, dtype, cache, log, methods))))
+    meshes: dict = {}
+
+    def mesh_pair():
+        if not meshes:
+            meshes["arap"], meshes["elasticity"] = _arap_mesh(plan), octopus(plan.elasticity.resolution)
+        return meshes["arap"], meshes["elasticity"]
+
     script, drop = HandleScript(frames=plan.arap.frames), DropScript(frames=plan.elasticity.frames)
-    results["timings"] = {}
-    for dtype in plan.local_dtypes:
-        label = str(dtype).replace("torch.", "")
-        log(f"Fig. 6 ({label} local step): ARAP phase times on {mesh.name} ({len(mesh.V):,} vertices), "
-            f"elasticity on {tets.name} ({len(tets.F):,} tets)")
-        results["timings"][label] = {
+
+    def fig6(dtype: torch.dtype) -> None:
+        mesh, tets = mesh_pair()
+        log(f"  ARAP on {mesh.name} ({len(mesh.V):,} vertices), elasticity on {tets.name} ({len(tets.F):,} tets)")
+        results["timings"][_label(dtype)] = {
             "arap": experiments.arap_phase_times(mesh, script, plan.timing_frames, plan.timing_iterations,
                                                  threads=plan.threads, dtype=dtype),
             "elasticity": experiments.elasticity_phase_times(tets, drop, frames=plan.elasticity_timing_frames,
                                                              threads=plan.threads, dtype=dtype)}
-    log("Fig. 7: energy against time")
-    results["traces"] = {
-        "arap": experiments.arap_energy_trace(mesh, script, iterations=plan.trace_iterations,
-                                              reference_iterations=plan.trace_reference_iterations,
-                                              threads=plan.threads),
-        "elasticity": experiments.elasticity_energy_trace(tets, drop, iterations=plan.elasticity_trace_iterations,
-                                                          threads=plan.threads),
-    }
-    small = capsule(plan.validation_resolution)
-    log(f"ARAP vs igl.arap_solve on {small.name} ({len(small.V):,} vertices, {plan.validation_iterations} iterations)")
-    results["validation"] = experiments.validate_arap_against_libigl(small, HandleScript(frames=plan.arap.frames),
-                                                                     plan.validation_iterations,
-                                                                     threads=plan.threads)
-    results["targets"] = report.targets(results)
-    results["seconds"] = time.perf_counter() - clock
-    results["load_average_at_end"] = list(os.getloadavg())
+
+    for dtype in plan.local_dtypes:
+        cases.append((f"Fig. 6: local vs global step per iteration, {_label(dtype)} local step",
+                      lambda dtype=dtype: fig6(dtype)))
+
+    def fig7() -> None:
+        mesh, tets = mesh_pair()
+        results["traces"] = {
+            "arap": experiments.arap_energy_trace(mesh, script, iterations=plan.trace_iterations,
+                                                  reference_iterations=plan.trace_reference_iterations,
+                                                  threads=plan.threads),
+            "elasticity": experiments.elasticity_energy_trace(tets, drop, iterations=plan.elasticity_trace_iterations,
+                                                              threads=plan.threads),
+        }
+
+    cases.append(("Fig. 7: energy against solver time, same start for every fit", fig7))
+
+    def validation() -> None:
+        small = capsule(plan.validation_resolution)
+        log(f"  {small.name} ({len(small.V):,} vertices), {plan.validation_iterations} iterations")
+        results["validation"] = experiments.validate_arap_against_libigl(
+            small, HandleScript(frames=plan.arap.frames), plan.validation_iterations, threads=plan.threads)
+        results["seconds"] = time.perf_counter() - clock.get("start", time.perf_counter())
+        results["load_average_at_end"] = list(os.getloadavg())
+
+    cases.append(("ARAP against igl.arap_solve: converged energies", validation))
+    return cases, results, rows
+
+
+def run_apps(plan: AppsPlan = QUICK, cache: str | None = None, tables: bool = True,
+             log: Callable[[str], None] = print, progress: bool = True) -> tuple[dict, list]:
+    """Runs every stage of :func:`apps_cases`; returns (results, benchmark rows)."""
+    cases, results, rows = apps_cases(plan, cache, tables, log, progress)
+    for title, run in cases:
+        log(title)
+        run()
     return results, rows
 
 
@@ -187,13 +250,12 @@ def markdown(results: dict, rows: list, machine: dict | None = None) -> str:
     for fit, v in validation["fits"].items():
         parts.append(f"| {fit} | {v['energy']:.12g} | {v['relative_difference_to_libigl']:.1e} | "
                      f"{v['last_relative_change']:.1e} |")
-    parts += [f"| igl.arap_solve | {validation['libigl']['energy']:.12g} | 0 | - |", "",
-              "## Targets", "", report.targets_markdown(results["targets"]), ""]
+    parts += [f"| igl.arap_solve | {validation['libigl']['energy']:.12g} | 0 | - |", ""]
     return "\n".join(parts)
 
 
 def print_summary(results: dict, rows: list, log: Callable[[str], None] = print) -> None:
-    """Prints the tables and targets."""
+    """Prints the tables and the libigl comparison."""
     log("\n## Recorded data (Fig. 5)\n")
     log(report.statistics_table(results["statistics"]))
     for dtype in sorted({r.dtype for r in rows}):
@@ -204,8 +266,11 @@ def print_summary(results: dict, rows: list, log: Callable[[str], None] = print)
     for label, timings in results["timings"].items():
         log(f"\n## Local vs global step per iteration, ms (Fig. 6), local step in {label}\n")
         log(report.phase_table(timings))
-    log("\n## Targets\n")
-    log(report.targets_markdown(results["targets"]))
+    validation = results["validation"]
+    log(f"\n## ARAP against igl.arap_solve ({validation['mesh']}, {validation['vertices']:,} vertices), "
+        "relative energy difference\n")
+    for fit, v in validation["fits"].items():
+        log(f"  {fit:10s} {v['relative_difference_to_libigl']:+.1e}")
 
 
 def write_apps(results: dict, rows: list, folder: str, machine: dict | None = None) -> list[str]:

@@ -31,14 +31,13 @@ import torch.utils.benchmark as tbench
 import torchrot
 from torchrot import baselines
 from torchrot import methods as paper
-from torchrot.apps.datasets import RECORDED as RECORDED_DATA
 from torchrot.reference import rotation_svd
 from torchrot.testing import cpu_kernel, make_warm_start
 
 Tensor = torch.Tensor
 ISAS = ("scalar", "default", "avx2", "avx512")
 VARIANTS = ("newton", "conservative", "gershgorin")
-WARM_DATA = ("warm", "warm_cond1e5") + RECORDED_DATA  # recorded solver data: init is the previous rotation
+WARM_DATA = ("warm", "warm_cond1e5")  # generated data whose init is close; recorded solver data pass warm=True
 ACCURACY_SAMPLE = 1_000_000  # accuracy is measured on the first matrices of each data set
 SLOW_MAX_N = 1_000_000  # SVD-based baselines are not run above this N
 PAPER = "paper method"
@@ -58,6 +57,11 @@ class Method:
     name: str
     run: Callable[[Tensor, Tensor, Tensor], Tensor]
     group: str  # "floor", "baseline", "torchrot" or "paper method"
+    # what tables select on: "copy", "svd", "roma", "igl_double", "igl_single", "torchrot",
+    # or the paper method's first author ("horn", "mueller", "higham", "fa3r", "kugelstadt")
+    key: str = ""
+    mode: str | None = None  # torchrot: "one_step", "converged_cold", "converged_warm", "one_step_new_output"
+    variant: str | None = None  # torchrot's Cayley step estimate
     isa: str | None = None  # torchrot kernel to force (TORCHROT_CPU_CAPABILITY)
     warm_only: bool = False  # only meaningful where init is close (warm data)
     max_n: int | None = None
@@ -66,7 +70,8 @@ class Method:
     # Timed and measured on the first sample_n matrices where N is larger (for methods so
     # slow that ns/matrix no longer depends on N); the row reports the N actually used.
     sample_n: int | None = None
-    iterations: Callable[[Tensor, Tensor], Tensor] | None = None  # (M, init) -> steps per matrix
+    # (M, init) -> (R, steps per matrix): the accuracy and the steps come from the same call
+    iterations: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]] | None = None
     # Not re-run with more threads (a cost made of thousands of tiny-tensor steps only adds
     # thread-pool overhead there).
     max_threads: int | None = None
@@ -76,13 +81,17 @@ class Method:
 class Row:
     part: str
     data: str
-    method: str
+    method: str  # the display name; select rows on group, key, mode, variant and isa
     dtype: str
     n: int
     threads: int
     ns_per_matrix: float
     runs_ns: list = field(default_factory=list)
     isa: str | None = None
+    group: str = ""
+    key: str = ""
+    mode: str | None = None
+    variant: str | None = None
     max_error: float | None = None  # max |R - R*|_F against float64 SVD
     median_error: float | None = None
     share_above_1e3: float | None = None  # share of matrices with |R - R*|_F > 1e-3 (or non-finite)
@@ -112,16 +121,18 @@ def _torchrot_methods(isa: str | None, label: str, variants: tuple[str, ...]) ->
         methods.append(Method(
             f"torchrot 1-step warm, {variant}{label}",
             lambda M, init, out, v=variant: torchrot.fit_rotation(M, init, max_iter=1, variant=v, out=out),
-            "torchrot", isa=isa, warm_only=True))
+            "torchrot", "torchrot", "one_step", variant, isa=isa, warm_only=True))
     for variant in variants:
         methods.append(Method(
             f"torchrot converged cold, {variant}{label}",
             lambda M, init, out, v=variant: torchrot.fit_rotation(M, variant=v, out=out),
-            "torchrot", isa=isa, diagnostics={"variant": variant, "warm": False}))
+            "torchrot", "torchrot", "converged_cold", variant, isa=isa,
+            diagnostics={"variant": variant, "warm": False}))
     methods.append(Method(
         f"torchrot converged warm{label}",
         lambda M, init, out: torchrot.fit_rotation(M, init, out=out),
-        "torchrot", isa=isa, diagnostics={"variant": "conservative", "warm": True}))
+        "torchrot", "torchrot", "converged_warm", "conservative", isa=isa,
+        diagnostics={"variant": "conservative", "warm": True}))
     return methods
 
 
@@ -139,20 +150,21 @@ def paper_methods(sample_n: int | None = None) -> list[Method]:
                PAPER, warm_only=True, max_n=SLOW_MAX_N),
         Method(f"Mueller 2016, converged from init (cap {paper.MUELLER_CAP})",
                lambda M, init, out: paper.mueller(M, init), PAPER, sample_n=MUELLER_CONVERGED_SAMPLE_N,
-               iterations=lambda M, init: paper.mueller(M, init, return_iterations=True)[1], max_threads=1),
+               iterations=lambda M, init: paper.mueller(M, init, return_iterations=True), max_threads=1),
         Method("Higham 1986 polar, LU inverse", lambda M, init, out: paper.higham_polar(M), PAPER,
-               max_n=SLOW_MAX_N, iterations=lambda M, init: paper.higham_polar(M, return_iterations=True)[1]),
+               max_n=SLOW_MAX_N, iterations=lambda M, init: paper.higham_polar(M, return_iterations=True)),
         Method("Higham 1986 polar, cofactor inverse", lambda M, init, out: paper.higham_polar(M, inverse="cofactor"),
                PAPER, max_n=SLOW_MAX_N,
-               iterations=lambda M, init: paper.higham_polar(M, inverse="cofactor", return_iterations=True)[1]),
+               iterations=lambda M, init: paper.higham_polar(M, inverse="cofactor", return_iterations=True)),
         Method(f"FA3R 2018, {paper.FA3R_PAPER_ITERATIONS} steps (authors')", lambda M, init, out: paper.fa3r(M),
                PAPER, max_n=SLOW_MAX_N),
         Method("FA3R 2018, converged", lambda M, init, out: paper.fa3r(M, max_iter=None), PAPER, max_n=SLOW_MAX_N,
-               iterations=lambda M, init: paper.fa3r(M, max_iter=None, return_iterations=True)[1]),
+               iterations=lambda M, init: paper.fa3r(M, max_iter=None, return_iterations=True)),
         Method("Kugelstadt 2018, 1 Newton step from init", lambda M, init, out: paper.kugelstadt(M, init), PAPER,
                warm_only=True, max_n=SLOW_MAX_N),
     ]
     for method in methods:
+        method.key = method.name.split()[0].lower()  # "horn", "mueller", "higham", "fa3r", "kugelstadt"
         # One thread: their cost is thousands of small batched tensor ops, which a
         # second thread only slows down (measured: Higham 1.3 -> 97 us per matrix).
         method.max_threads = 1
@@ -168,18 +180,18 @@ def all_methods(isas: list[str] | None = None, variants: tuple[str, ...] = VARIA
     ``comparison``) the paper's comparison methods, on at most ``comparison_n``
     matrices per data set (None: all)."""
     methods = [
-        Method("copy_ (memory floor)", lambda M, init, out: out.copy_(M), "floor"),
-        Method("torch.linalg.svd", lambda M, init, out: rotation_svd(M), "baseline", max_n=SLOW_MAX_N),
+        Method("copy_ (memory floor)", lambda M, init, out: out.copy_(M), "floor", "copy"),
+        Method("torch.linalg.svd", lambda M, init, out: rotation_svd(M), "baseline", "svd", max_n=SLOW_MAX_N),
     ]
     if baselines.available("roma"):
         methods.append(Method("roma.special_procrustes", lambda M, init, out: baselines.roma_special_procrustes(M),
-                              "baseline", max_n=SLOW_MAX_N))
+                              "baseline", "roma", max_n=SLOW_MAX_N))
     if baselines.available("igl"):
         methods.append(Method("igl.fit_rotations (double)", lambda M, init, out: baselines.igl_fit_rotations(M),
-                              "baseline", max_n=SLOW_MAX_N))
+                              "baseline", "igl_double", max_n=SLOW_MAX_N))
         methods.append(Method("igl.fit_rotations (single)",
                               lambda M, init, out: baselines.igl_fit_rotations(M, single_precision=True),
-                              "baseline", max_n=SLOW_MAX_N))
+                              "baseline", "igl_single", max_n=SLOW_MAX_N))
     if isas is None:
         methods += _torchrot_methods(None, "", variants)
     else:
@@ -189,7 +201,7 @@ def all_methods(isas: list[str] | None = None, variants: tuple[str, ...] = VARIA
         # Without out=: every call allocates a new output and pays its first-touch page faults.
         methods.append(Method("torchrot 1-step warm, conservative, new output",
                               lambda M, init, out: torchrot.fit_rotation(M, init, max_iter=1), "torchrot",
-                              warm_only=True))
+                              "torchrot", "one_step_new_output", "conservative", warm_only=True))
     if comparison:
         methods += paper_methods(comparison_n)
     return methods
@@ -197,8 +209,13 @@ def all_methods(isas: list[str] | None = None, variants: tuple[str, ...] = VARIA
 
 def _median_seconds(fn: Callable[[], object], repeats: int, min_run_time: float, threads: int = 1) -> list[float]:
     """Per-call seconds of ``repeats`` independent ``blocked_autorange`` medians
-    (the Timer sets the thread count itself: it defaults to 1)."""
+    (the Timer sets the thread count itself: it defaults to 1). A call that
+    alone takes ``min_run_time`` or more is timed one call at a time instead
+    (``blocked_autorange`` would spend a first call estimating its block size)."""
     timer = tbench.Timer(stmt="fn()", globals={"fn": fn}, num_threads=threads)
+    first = timer.timeit(1).median
+    if first >= min_run_time:
+        return [first] + [timer.timeit(1).median for _ in range(repeats - 1)]
     return [timer.blocked_autorange(min_run_time=min_run_time).median for _ in range(repeats)]
 
 
@@ -217,19 +234,8 @@ def _accuracy(R: Tensor, M64: Tensor, R_star: Tensor) -> dict:
     }
 
 
-def benchmark_data(data: str, n: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-    """``(M, init)`` of data set ``data``: a ``torchrot.testing`` distribution
-    (``make_warm_start``) or a recorded solver data set ("arap", "elasticity":
-    ``torchrot.apps.datasets``, recorded on first use, then cached)."""
-    if data in RECORDED_DATA:
-        from torchrot.apps.datasets import benchmark_data as recorded
-
-        return recorded(data, n, seed=0, dtype=dtype)
-    return make_warm_start(data, n, seed=0, dtype=dtype)
-
-
-def _applicable(method: Method, data: str, n: int, dtype: torch.dtype, threads: int = 1) -> bool:
-    if method.warm_only and data not in WARM_DATA:
+def _applicable(method: Method, warm: bool, n: int, dtype: torch.dtype, threads: int = 1) -> bool:
+    if method.warm_only and not warm:
         return False
     if method.max_n is not None and n > method.max_n:
         return False
@@ -238,10 +244,16 @@ def _applicable(method: Method, data: str, n: int, dtype: torch.dtype, threads: 
     return not (method.float64_only and dtype != torch.float64)
 
 
-def run_case(part: str, data: str, n: int, dtype: torch.dtype, threads: int, methods: list[Method],
-             repeats: int, min_run_time: float, log: Callable[[str], None] = print) -> list[Row]:
-    """Times every applicable method on one data set; SVD and copy included."""
-    M, init = benchmark_data(data, n, dtype)
+def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, methods: list[Method],
+             repeats: int, min_run_time: float, log: Callable[[str], None] = print,
+             warm: bool | None = None, slow_repeats: int | None = None) -> list[Row]:
+    """Times every applicable method on one data set ``(M, init)`` ``(N, 3, 3)``
+    named ``data`` (its rows' label); SVD and copy included. ``warm``: whether
+    init is close to the answer, so the warm-start-only methods run (default:
+    ``data in WARM_DATA``; recorded solver data are warm). ``slow_repeats``:
+    timed runs of the methods with a ``sample_n`` (seconds per call; None: ``repeats``)."""
+    n, dtype = M.shape[0], M.dtype
+    warm = data in WARM_DATA if warm is None else warm
     out = torch.empty_like(M)
     k = min(n, ACCURACY_SAMPLE)
     M64 = M[:k].double()
@@ -251,24 +263,39 @@ def run_case(part: str, data: str, n: int, dtype: torch.dtype, threads: int, met
     torch.set_num_threads(threads)
     try:
         for method in methods:
-            if not _applicable(method, data, n, dtype, threads):
+            if not _applicable(method, warm, n, dtype, threads):
                 continue
             # slow methods run on the first sample_n matrices (their ns/matrix is flat in N)
             used = n if method.sample_n is None else min(n, method.sample_n)
             M_used, init_used, out_used = M[:used], init[:used], out[:used]
             k_used = min(k, used)
             with forced_isa(method.isa):
-                runs = _median_seconds(lambda: method.run(M_used, init_used, out_used), repeats, min_run_time,
-                                       threads)
-                R = method.run(M_used, init_used, out_used)
+                # methods with a sample_n (the comparison methods, up to seconds per call): slow_repeats runs
+                method_repeats = repeats if method.sample_n is None or slow_repeats is None else slow_repeats
+                steps = None
+                if method_repeats == 1 and method.iterations is not None and k_used == used:
+                    # one call gives the time, the result and the steps (Mueller's converged mode: seconds)
+                    timer = tbench.Timer(stmt="out.append(fn())", globals={"fn": lambda: method.iterations(
+                        M_used, init_used), "out": (result := [])}, num_threads=threads)
+                    runs = [timer.timeit(1).median]
+                    R, steps = result[-1]
+                else:
+                    runs = _median_seconds(lambda: method.run(M_used, init_used, out_used), method_repeats,
+                                           min_run_time, threads)
+                    if method.iterations is not None and k_used == used:
+                        R, steps = method.iterations(M_used, init_used)
+                    else:
+                        R = method.run(M_used, init_used, out_used)
+                        if method.iterations is not None:
+                            steps = method.iterations(M[:k_used], init[:k_used])[1]
                 info = None
                 if method.diagnostics is not None:
                     start = init[:k] if method.diagnostics["warm"] else None
                     info = torchrot.fit_rotation_info(M[:k], start, variant=method.diagnostics["variant"])
-                steps = method.iterations(M[:k_used], init[:k_used]) if method.iterations is not None else None
             row = Row(part, data, method.name, str(dtype).replace("torch.", ""), used, threads,
                       ns_per_matrix=statistics.median(runs) / used * 1e9, runs_ns=[r / used * 1e9 for r in runs],
-                      isa=method.isa)
+                      isa=method.isa, group=method.group, key=method.key, mode=method.mode,
+                      variant=method.variant)
             if method.group != "floor":
                 for key, value in _accuracy(R[:k_used], M64[:k_used], R_star[:k_used]).items():
                     setattr(row, key, value)
@@ -282,9 +309,8 @@ def run_case(part: str, data: str, n: int, dtype: torch.dtype, threads: int, met
                 f"{row.ns_per_matrix:10.2f} ns/matrix")
     finally:
         torch.set_num_threads(previous_threads)
-    by_name = {r.method: r for r in rows}
-    svd = by_name.get("torch.linalg.svd")
-    copy = by_name.get("copy_ (memory floor)")
+    by_key = {r.key: r for r in rows if r.key in ("svd", "copy")}
+    svd, copy = by_key.get("svd"), by_key.get("copy")
     for row in rows:
         row.speedup_vs_svd = svd.ns_per_matrix / row.ns_per_matrix if svd else None
         row.time_vs_copy = row.ns_per_matrix / copy.ns_per_matrix if copy else None
@@ -296,40 +322,76 @@ class Plan:
     """What to run: the scaling sweep and the method matrix."""
 
     scaling_data: tuple[str, ...] = ("warm", "uniform")
-    scaling_n: tuple[int, ...] = (1_000, 10_000, 100_000)
+    scaling_n: tuple[int, ...] = (1_000, 3_000, 10_000)
     methods_data: tuple[str, ...] = ("warm", "warm_cond1e5", "rot60", "uniform")
-    methods_n: int = 100_000
+    methods_n: int = 4_000
     dtypes: tuple[torch.dtype, ...] = (torch.float32,)
     threads: tuple[int, ...] = (1, 2)
     all_isas: bool = False
     variants: tuple[str, ...] = ("newton", "conservative")
-    repeats: int = 5
-    min_run_time: float = 0.1
+    repeats: int = 3
+    min_run_time: float = 0.02
     # the paper's comparison methods run on at most this many matrices per data set (None: methods_n);
     # their ns/matrix is flat in N from ~1e4 on (0.5-5 us per matrix of batched tensor ops)
-    comparison_n: int | None = 20_000
+    comparison_n: int | None = 500
+    slow_repeats: int | None = 1  # timed runs of the comparison methods (up to seconds per call; None: repeats)
+    overhead_run_time: float = 0.05  # min_run_time of the single-matrix call timings
 
 
+#: The default ``python -m torchrot bench``: every part at small sizes (well under 2 minutes with
+#: the applications part on 2 cores). ``--full``: the paper-scale grid.
 QUICK = Plan()
 FULL = Plan(scaling_n=(1_000, 10_000, 100_000, 1_000_000, 10_000_000), methods_n=1_000_000,
             dtypes=(torch.float32, torch.float64), all_isas=True, variants=VARIANTS, repeats=5, min_run_time=0.2,
-            comparison_n=COMPARISON_N)
+            comparison_n=COMPARISON_N, slow_repeats=None, overhead_run_time=0.5)
 
 
-def run_plan(plan: Plan, log: Callable[[str], None] = print) -> list[Row]:
-    rows: list[Row] = []
+def make_pairs(data: str, n: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """``(M, init)`` of a generated data set (``torchrot.testing.make_warm_start``, seed 0)."""
+    return make_warm_start(data, n, seed=0, dtype=dtype)
+
+
+def plan_cases(plan: Plan, pairs: Callable[[str, int, torch.dtype], tuple[Tensor, Tensor]] = make_pairs,
+               warm: Callable[[str], bool] = WARM_DATA.__contains__,
+               log: Callable[[str], None] = print) -> list[tuple[str, Callable[[], list[Row]]]]:
+    """The plan as a list of (title, run) cases, each ``run()`` returning its
+    rows: the scaling sweep (one case per data set) and the method matrix (one
+    per dtype, thread count and data set). ``pairs(data, n, dtype)`` makes the
+    data (default: generated); ``warm(data)`` says whether its init is close."""
+    cases = []
     scaling = [m for m in all_methods(None, ("conservative",), first_touch=False, comparison=False)
-               if m.group != "torchrot" or "newton" not in m.name]
-    for data in plan.scaling_data:
+               if m.mode != "one_step" or m.variant != "newton"]
+
+    def sweep(data: str) -> list[Row]:
+        rows = []
         for n in plan.scaling_n:
-            rows += run_case("scaling", data, n, torch.float32, 1, scaling, plan.repeats, plan.min_run_time, log)
+            M, init = pairs(data, n, torch.float32)
+            rows += run_case("scaling", data, M, init, 1, scaling, plan.repeats, plan.min_run_time, log, warm(data),
+                             plan.slow_repeats)
+        return rows
+
+    for data in plan.scaling_data:
+        cases.append((f"scaling sweep, {data} data, N = {', '.join(f'{n:,}' for n in plan.scaling_n)}",
+                      lambda data=data: sweep(data)))
     methods = all_methods(supported_isas() if plan.all_isas else None, plan.variants, comparison_n=plan.comparison_n)
+
+    def matrix(data: str, dtype: torch.dtype, threads: int) -> list[Row]:
+        M, init = pairs(data, plan.methods_n, dtype)
+        return run_case("methods", data, M, init, threads, methods, plan.repeats, plan.min_run_time, log, warm(data),
+                        plan.slow_repeats)
+
     for dtype in plan.dtypes:
         for threads in plan.threads:
             for data in plan.methods_data:
-                rows += run_case("methods", data, plan.methods_n, dtype, threads, methods, plan.repeats,
-                                 plan.min_run_time, log)
-    return rows
+                cases.append((f"every method, {data} data, {str(dtype).replace('torch.', '')}, "
+                              f"N = {plan.methods_n:,}, {threads} thread{'s' * (threads > 1)}",
+                              lambda data=data, dtype=dtype, threads=threads: matrix(data, dtype, threads)))
+    return cases
+
+
+def run_plan(plan: Plan, log: Callable[[str], None] = print) -> list[Row]:
+    """Every case of :func:`plan_cases` on generated data."""
+    return [row for _, run in plan_cases(plan, log=log) for row in run()]
 
 
 def single_matrix_overhead(min_run_time: float = 0.5) -> dict[str, float]:
@@ -396,7 +458,7 @@ def plot_scaling(rows: list[Row], path: str) -> None:
                          key=[r.method for r in scaling].index)
         for method in methods:
             pts = sorted((r.n, r.ns_per_matrix) for r in scaling if r.data == data and r.method == method)
-            style = "--" if method.startswith("copy_") else "-"
+            style = "--" if any(r.key == "copy" for r in scaling if r.method == method) else "-"
             ax.plot([p[0] for p in pts], [p[1] for p in pts], style, marker="o", label=method)
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -407,7 +469,7 @@ def plot_scaling(rows: list[Row], path: str) -> None:
         ax.legend(fontsize=8)
     fig.suptitle(f"torchrot vs baselines ({machine_info()['aten_cpu_capability']}, "
                  f"{machine_info()['processor']})")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.1, top=0.86, wspace=0.2)  # tight_layout: seconds
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

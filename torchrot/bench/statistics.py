@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 import torchrot
-from torchrot.apps.recording import Recording
+from torchrot.bench.recording import Recording
 
 Tensor = torch.Tensor
 

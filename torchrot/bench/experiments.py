@@ -12,7 +12,9 @@ ARAP validation against libigl.
   rotation fit and of ``igl.arap_solve`` on the same mesh, handles and start.
 
 Solver times exclude the energy evaluations (which only the experiments do).
-Every function returns plain Python data (for JSON).
+Each run passes its rotation fit and its :class:`PhaseTimer` to the solver
+calls as arguments: no solver is modified. Every function returns plain
+Python data (for JSON).
 """
 from __future__ import annotations
 
@@ -26,10 +28,10 @@ import torch
 
 from torchrot.apps.arap import ArapSolver, ArapState
 from torchrot.apps.elasticity import ElasticitySolver, ElasticState
-from torchrot.apps.local_step import RotationFit
+from torchrot.apps.local_step import LocalStep
 from torchrot.apps.meshes import Mesh
-from torchrot.apps.sessions import DropScript, HandleScript, run_arap_session, run_elasticity_session
-from torchrot.apps.timing import PhaseTimer
+from torchrot.bench.sessions import DropScript, HandleScript, run_arap_session, run_elasticity_session
+from torchrot.bench.timing import PhaseTimer
 
 FITS = ("svd", "one_step", "converged")
 LOCAL = ("assembly", "fit")
@@ -73,20 +75,20 @@ def arap_solver(mesh: Mesh, script: HandleScript, fit: str = "one_step",
                 dtype: torch.dtype = torch.float64) -> ArapSolver:
     """The ARAP solver of ``mesh`` with ``script``'s handles, local step in ``dtype``."""
     handles, _ = script.handles(mesh.V)
-    return ArapSolver(mesh.V, mesh.F, handles, RotationFit(fit), dtype=dtype)
+    return ArapSolver(mesh.V, mesh.F, handles, LocalStep(fit), dtype=dtype)
 
 
 def arap_start_state(solver: ArapSolver, script: HandleScript, frames: int, iterations: int) -> ArapState:
     """The state after the first ``frames`` frames of ``script`` (its handle
     path at its own pace), ``iterations`` converged-fit iterations each."""
-    solver.fit = RotationFit("converged")
+    converged = LocalStep("converged")
     V = solver.rest.numpy()
     handles, moving = script.handles(V)
     state = solver.initial_state()
     for frame in range(frames):
         targets = script.targets_at(V, handles, moving, frame / max(script.frames - 1, 1))
         for _ in range(iterations):
-            state = solver.iterate(state, targets)
+            state = solver.iterate(state, targets, fit=converged)
     return state
 
 
@@ -106,9 +108,9 @@ def arap_phase_times(mesh: Mesh, script: HandleScript, frames: int = 6, iteratio
                   "dtype": str(dtype).replace("torch.", ""),
                   "frames": frames, "iterations_per_frame": iterations, "fits": {}}
         for fit in fits:
-            solver.fit, solver.timer = RotationFit(fit), PhaseTimer()
-            run_arap_session(solver, short, iterations)
-            result["fits"][fit] = _summary(solver.timer)
+            timer = PhaseTimer()
+            run_arap_session(solver, short, iterations, fit=LocalStep(fit), timer=timer)
+            result["fits"][fit] = _summary(timer)
     return result
 
 
@@ -131,22 +133,21 @@ def arap_energy_trace(mesh: Mesh, script: HandleScript, start_frame: int = 10, j
                   "jump_frames": jump_frames, "iterations": iterations, "threads": threads,
                   "start_energy": solver.energy(start.P, start.Rt), "fits": {}}
         for fit in fits:
-            solver.fit, solver.timer = RotationFit(fit), PhaseTimer()
+            local, timer = LocalStep(fit), PhaseTimer()
             state = ArapState(start.P.clone(), start.Rt.clone())
             after_local, after_global = [], []
             for _ in range(iterations):
-                Rt = solver.local_step(state)
+                Rt = solver.local_step(state, fit=local, timer=timer)
                 after_local.append(solver.energy(state.P, Rt))
-                state = ArapState(solver.global_step(Rt, targets), Rt)
+                state = ArapState(solver.global_step(Rt, targets, timer=timer), Rt)
                 after_global.append(solver.energy(state.P, Rt))
-            result["fits"][fit] = _trace(solver.timer, after_local, after_global, result["start_energy"])
+            result["fits"][fit] = _trace(timer, after_local, after_global, result["start_energy"])
             result["fits"][fit]["final_optimal_energy"] = solver.energy(state.P)
             if fit == "converged" or "converged" not in fits:
                 reference = state
-        solver.fit, solver.timer = RotationFit("converged"), PhaseTimer(enabled=False)
-        state = reference
+        state, converged = reference, LocalStep("converged")
         for _ in range(reference_iterations):
-            state = solver.iterate(state, targets)
+            state = solver.iterate(state, targets, fit=converged)
         result["reference_energy"] = solver.energy(state.P)  # the converged fit's, continued
         result["reference_iterations"] = iterations + reference_iterations
     return result
@@ -190,11 +191,11 @@ def validate_arap_against_libigl(mesh: Mesh, script: HandleScript, iterations: i
         result = {"mesh": mesh.name, "vertices": len(mesh.V), "iterations": iterations, "start_frame": start_frame,
                   "jump_frames": jump_frames, "dtype": str(dtype).replace("torch.", ""), "fits": {}}
         for fit in fits:
-            solver.fit, solver.timer = RotationFit(fit), PhaseTimer(enabled=False)
+            local = LocalStep(fit)
             state = ArapState(start.P.clone(), start.Rt.clone())
             energies = []
             for _ in range(iterations):
-                state = solver.iterate(state, targets)
+                state = solver.iterate(state, targets, fit=local)
                 energies.append(solver.energy(state.P, state.Rt))
             diffs = np.diff(energies)
             result["fits"][fit] = {"energy": solver.energy(state.P),
@@ -225,8 +226,7 @@ def validate_arap_against_libigl(mesh: Mesh, script: HandleScript, iterations: i
 # -- elasticity --------------------------------------------------------------------
 def elasticity_start_state(solver: ElasticitySolver, script: DropScript, frames: int) -> ElasticState:
     """The state after the first ``frames`` time steps (converged fits)."""
-    solver.fit = RotationFit("converged")
-    return run_elasticity_session(solver, replace(script, frames=frames))
+    return run_elasticity_session(solver, replace(script, frames=frames), fit=LocalStep("converged"))
 
 
 def elasticity_phase_times(mesh: Mesh, script: DropScript, start_frame: int = 20, frames: int = 8,
@@ -245,13 +245,13 @@ def elasticity_phase_times(mesh: Mesh, script: DropScript, start_frame: int = 20
                   "dtype": str(dtype).replace("torch.", ""),
                   "frames": frames, "iterations_per_frame": iterations, "fits": {}}
         for fit in fits:
-            solver.fit, solver.timer = RotationFit(fit), PhaseTimer()
+            local, timer = LocalStep(fit), PhaseTimer()
             refactors = solver.refactorizations
             state = start
             for frame in range(frames):
-                state = solver.step(state, frame=start_frame + frame)
-            summary = _summary(solver.timer)
-            refactor = solver.timer.seconds.get("refactor", [])
+                state = solver.step(state, frame=start_frame + frame, fit=local, timer=timer)
+            summary = _summary(timer)
+            refactor = timer.seconds.get("refactor", [])
             summary["contact_refactorizations"] = solver.refactorizations - refactors
             summary["refactor_ms_median"] = float(np.median(refactor)) * 1e3 if refactor else 0.0
             result["fits"][fit] = summary
@@ -270,10 +270,10 @@ def elasticity_energy_trace(mesh: Mesh, script: DropScript, frame: int = 18, ite
         result = {"mesh": mesh.name, "tets": len(mesh.F), "frame": frame, "iterations": iterations,
                   "threads": threads, "fits": {}}
         for fit in fits:
-            solver.fit, solver.timer = RotationFit(fit), PhaseTimer()
+            timer = PhaseTimer()
             energies: list[float] = []
-            solver.step(start, frame=frame, energies=energies)
-            result["fits"][fit] = _trace(solver.timer, energies[0::2], energies[1::2])
+            solver.step(start, frame=frame, energies=energies, fit=LocalStep(fit), timer=timer)
+            result["fits"][fit] = _trace(timer, energies[0::2], energies[1::2])
         finals = [result["fits"][f]["energy"][-1] for f in fits]
         result["reference_energy"] = float(min(finals))
     return result

@@ -1,0 +1,193 @@
+"""``python -m torchrot bench [--full] [options]``: the microbenchmark, then
+the applications part, as numbered stages with the elapsed time."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib.util
+import os
+import sys
+import time
+
+import torch
+
+from torchrot.bench import data, micro
+from torchrot.bench.progress import Progress
+from torchrot.testing import DISTRIBUTIONS
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+def _positive_int(text: str) -> int:
+    value = int(float(text))  # accepts 1e5
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
+    return value
+
+
+def _data_set(text: str) -> str:
+    known = sorted(DISTRIBUTIONS) + list(data.RECORDED)
+    if text not in known:
+        raise argparse.ArgumentTypeError(f"unknown data set {text!r}; known: {', '.join(known)}")
+    return text
+
+
+def _folder_size(folder: str) -> int:
+    total = 0
+    for root, _, files in os.walk(folder):
+        for name in files:
+            try:
+                total += os.path.getsize(os.path.join(root, name))
+            except OSError:
+                pass
+    return total
+
+
+def _missing_app_modules() -> list[str]:
+    return [m for m in ("scipy", "igl") if importlib.util.find_spec(m) is None]
+
+
+def parser() -> argparse.ArgumentParser:
+    top = argparse.ArgumentParser(prog="python -m torchrot")
+    sub = top.add_subparsers(dest="command", required=True)
+    bench = sub.add_parser(
+        "bench", help="accuracy/speed tables on generated and recorded solver data",
+        description="Times torchrot beside torch.linalg.svd, the memory copy, the installed baselines (roma, "
+                    "libigl) and the paper's comparison methods on generated data, then the applications part: "
+                    "records (or loads from the cache) the ARAP and elasticity data sets and prints the paper's "
+                    "Tables 1-2 analogues and writes Figs. 5-7. The default run takes about a minute on 2 cores "
+                    "(every part at small sizes); --full is the paper-scale run (N up to 1e7, every kernel, both "
+                    "dtypes, 57k-vertex and 24k-tet solvers: about 40 minutes).")
+    bench.add_argument("--full", action="store_true", help="the paper-scale run (about 40 minutes on 2 cores)")
+    bench.add_argument("--n", type=_positive_int, help="matrices per data set in the method tables")
+    bench.add_argument("--scaling-n", type=_positive_int, nargs="+", help="N values of the scaling sweep")
+    bench.add_argument("--data", type=_data_set, nargs="+", help="data sets of the method tables")
+    bench.add_argument("--dtype", nargs="+", choices=sorted(DTYPES))
+    bench.add_argument("--threads", type=_positive_int, nargs="+")
+    bench.add_argument("--repeats", type=_positive_int, help="timed runs per row; the median is reported")
+    bench.add_argument("--output", default="results",
+                       help="folder for bench.json/.md/.png and apps.json/.md/fig*.png (default: ./results; "
+                            "'' to write nothing)")
+    bench.add_argument("--no-apps", action="store_true",
+                       help="skip the applications part (ARAP/elasticity data, Tables 1-2, Figs. 5-7)")
+    bench.add_argument("--apps-only", action="store_true", help="run only the applications part")
+    bench.add_argument("--mesh", help="an OBJ/OFF/PLY/STL surface for the ARAP data set and experiments "
+                                      "(default: the built-in capsule)")
+    bench.add_argument("--cache", help="folder of the recorded data sets (default: $TORCHROT_CACHE, else "
+                                       "$XDG_CACHE_HOME/torchrot, else ~/.cache/torchrot); a second run loads "
+                                       "them from there")
+    return top
+
+
+def _plans(args: argparse.Namespace):
+    plan = micro.FULL if args.full else micro.QUICK
+    overrides = {
+        "scaling_n": tuple(args.scaling_n) if args.scaling_n else None,
+        "methods_n": args.n,
+        "methods_data": tuple(args.data) if args.data else None,
+        "dtypes": tuple(DTYPES[d] for d in args.dtype) if args.dtype else None,
+        "threads": tuple(args.threads) if args.threads else None,
+        "repeats": args.repeats,
+    }
+    plan = dataclasses.replace(plan, **{k: v for k, v in overrides.items() if v is not None})
+    if _missing_app_modules():
+        return plan, None
+    from torchrot.bench import apps  # the solvers need scipy and igl
+
+    apps_plan = apps.FULL if args.full else apps.QUICK
+    overrides = {"table_n": args.n, "dtypes": tuple(DTYPES[d] for d in args.dtype) if args.dtype else None,
+                 "repeats": args.repeats}
+    apps_plan = dataclasses.replace(apps_plan, **{k: v for k, v in overrides.items() if v is not None})
+    if args.mesh:
+        apps_plan = dataclasses.replace(apps_plan, arap=dataclasses.replace(apps_plan.arap, mesh_path=args.mesh))
+    return plan, apps_plan
+
+
+def bench(args: argparse.Namespace, log=print) -> int:
+    clock = time.perf_counter()
+    plan, apps_plan = _plans(args)
+    output = os.path.abspath(args.output) if args.output else None
+    cache = data.cache_root(args.cache)
+    missing = _missing_app_modules()
+    run_micro, run_apps = not args.apps_only, not args.no_apps and not missing
+    log(f"torchrot benchmark ({'full' if args.full else 'quick; --full for the paper-scale run'}): "
+        f"{micro.machine_info()}")
+    log(f"results:  {output + os.sep if output else 'not written (--output ' + repr(args.output) + ')'}")
+    if run_apps or (run_micro and set(plan.methods_data) & set(data.RECORDED)):
+        log(f"data set cache: {cache}{os.sep} (recorded solver data, {_folder_size(cache) / 1e6:.0f} MB now; "
+            "--cache or $TORCHROT_CACHE to move it)")
+    if missing and not args.no_apps:
+        log(f"applications part skipped: {', '.join(missing)} not installed (pip install 'torchrot[bench]')")
+
+    stages: list[tuple[str, object]] = []
+    rows: list = []
+    overhead: dict = {}
+    if run_micro:
+        def pairs(name: str, n: int, dtype: torch.dtype):
+            configs = {} if apps_plan is None else {"arap": apps_plan.arap, "elasticity": apps_plan.elasticity}
+            return data.pairs(name, n, dtype, configs=configs, cache=args.cache)
+
+        def warm(name: str) -> bool:
+            return name in micro.WARM_DATA or name in data.RECORDED
+
+        for title, run in micro.plan_cases(plan, pairs, warm, log):
+            stages.append((title, lambda run=run: rows.extend(run())))
+        stages.append(("single-matrix call overhead", lambda: overhead.update(
+            micro.single_matrix_overhead(plan.overhead_run_time))))
+    apps_results: dict = {}
+    apps_rows: list = []
+    if run_apps:
+        from torchrot.bench import apps
+
+        cases, apps_results, apps_rows = apps.apps_cases(apps_plan, args.cache, log=log)
+        stages += cases
+    stages.append(("writing the results" if output else "summary", None))
+
+    progress = Progress(len(stages), log)
+    # Everything outside the timed rows (data generation and recording, reference SVDs, statistics) runs
+    # on 1 thread, as the solver experiments do: on a shared machine a second intra-op thread that waits
+    # for a busy core slows the small sparse products and fits of the recording ten-fold. The rows set
+    # their own thread count (run_case).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for title, run in stages[:-1]:
+            progress.stage(title)
+            run()
+    finally:
+        torch.set_num_threads(threads)
+    progress.stage(stages[-1][0])
+    written: list[str] = []
+    if run_micro:
+        log("\nSingle-matrix call (us):")
+        for name, us in overhead.items():
+            log(f"  {name:58s} {us:7.2f}")
+        for part in ("scaling", "methods"):
+            log(f"\n## {part}\n")
+            log(micro.format_table([r for r in rows if r.part == part]))
+        if output:
+            written += micro.write_results(rows, overhead, output)
+    if run_apps:
+        from torchrot.bench import apps
+
+        apps.print_summary(apps_results, apps_rows, log)
+        if output:
+            written += apps.write_apps(apps_results, apps_rows, output, micro.machine_info())
+    log("")
+    for path in written:
+        log(f"wrote {path}")
+    log(f"\ndone in {time.perf_counter() - clock:.0f} s.")
+    if output:
+        log(f"results:  {output}{os.sep} ({len(written)} files: bench.md/apps.md are the reports)")
+    if run_apps or (run_micro and set(plan.methods_data) & set(data.RECORDED)):
+        log(f"data set cache: {cache}{os.sep} ({_folder_size(cache) / 1e6:.0f} MB; delete it to re-record)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    return bench(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
