@@ -9,6 +9,14 @@
 // raises for a bad value); a thread can force another kernel for its own calls
 // with set_thread_cpu_kernel (torchrot.testing.cpu_kernel), which never
 // affects other threads.
+//
+// The names are one ordered scale on every architecture. The avx2 and avx512
+// objects exist on x86-64 only (TORCHROT_X86_64_KERNELS, kernel_table.h); on
+// any other target (aarch64, ...) the hardware level is "default", the
+// portable object, in which ATen's Vectorized<T> is NEON on aarch64 (4 float,
+// 2 double lanes; whatever at::get_cpu_capability() says, SVE256 included),
+// so there a request for avx2 or avx512 is capped to "default" like any
+// request above the hardware, and cpu_kernel() names "scalar" or "default".
 #include <ATen/Dispatch.h>
 #include <ATen/Version.h>
 #include <c10/util/Exception.h>
@@ -31,9 +39,11 @@ constexpr const char* kEnvironmentVariable = "TORCHROT_CPU_CAPABILITY";
 
 Isa hardware_isa() {
   static const Isa isa = [] {
+#if TORCHROT_X86_64_KERNELS
     const std::string cap = at::get_cpu_capability();
     if (cap == "AVX512") return Isa::kAvx512;
     if (cap == "AVX2") return Isa::kAvx2;
+#endif
     return Isa::kDefault;
   }();
   return isa;
@@ -66,10 +76,15 @@ Isa selected_isa() { return forced_isa >= 0 ? static_cast<Isa>(forced_isa) : pro
 
 const cpu::KernelTable& kernels(Isa isa) {
   switch (isa) {
+#if TORCHROT_X86_64_KERNELS
     case Isa::kAvx512:
       return cpu::avx512_kernels();
     case Isa::kAvx2:
       return cpu::avx2_kernels();
+#else
+    case Isa::kAvx512:
+    case Isa::kAvx2:  // unreachable: capped at hardware_isa(), kDefault here
+#endif
     case Isa::kDefault:
       return cpu::default_kernels();
     case Isa::kScalar:

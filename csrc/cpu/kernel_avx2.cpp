@@ -3,6 +3,10 @@
 // defines lives in an anonymous namespace except the table getter below.
 #include "kernel_object.h"
 
+#if !TORCHROT_X86_64_KERNELS
+#error "an x86-64 kernel object: setup.py compiles it for x86-64 targets only"
+#endif
+
 namespace torchrot {
 namespace cpu {
 

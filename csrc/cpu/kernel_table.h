@@ -6,6 +6,16 @@
 
 #include "../fit_rotation.h"
 
+// The AVX2 and AVX-512 kernel objects exist on x86-64 only: setup.py compiles
+// them when its compiler targets x86-64 (the same test as this one), and
+// elsewhere (aarch64: scalar and default, the latter ATen's Vectorized<T> on
+// NEON) nothing may reference them.
+#if defined(__x86_64__) || defined(_M_X64)
+#define TORCHROT_X86_64_KERNELS 1
+#else
+#define TORCHROT_X86_64_KERNELS 0
+#endif
+
 namespace torchrot {
 namespace cpu {
 
@@ -68,8 +78,10 @@ struct KernelTable {
 // support their instruction set.
 const KernelTable& scalar_kernels();
 const KernelTable& default_kernels();
+#if TORCHROT_X86_64_KERNELS
 const KernelTable& avx2_kernels();
 const KernelTable& avx512_kernels();
+#endif
 
 }  // namespace cpu
 }  // namespace torchrot

@@ -1,5 +1,6 @@
 // In-register AoS <-> SoA transposition of a contiguous block of W row-major
-// 3x3 matrices (9 W consecutive values), for the AVX2 and AVX-512 kernels.
+// 3x3 matrices (9 W consecutive values), for the AVX2 and AVX-512 kernels
+// (x86-64 only; every other object, NEON's included, gathers through a buffer).
 //
 // Since 9 = 3 x 3 it is two stages of a stride-3 (de)interleave of three
 // vectors. Because gcd(3, W) = 1 for W = 4, 8, 16, the W values 3m + r
