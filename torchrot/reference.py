@@ -16,6 +16,7 @@ import math
 
 import torch
 
+from torchrot.generic import fit_rotation_backward_generic
 from torchrot._checks import bad_init_error, check_all, check_backward, check_matrix_arg
 from torchrot._limits import (
     CONVERGED_CAP,
@@ -386,13 +387,6 @@ def fit_rotation_reference(
     return R
 
 
-def _cross_matrix(u: torch.Tensor) -> torch.Tensor:
-    """[u]x for ``(..., 3)`` u: the matrix with [u]x v = u x v."""
-    zero = torch.zeros_like(u[..., 0])
-    x, y, z = u.unbind(-1)
-    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).unflatten(-1, (3, 3))
-
-
 def fit_rotation_backward_reference(
     grad: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: float = GRADIENT_EPS
 ) -> torch.Tensor:
@@ -402,8 +396,11 @@ def fit_rotation_backward_reference(
     (csrc/kernel/rotation_gradient.h has the derivation) gives
     dL/dM = R [u]x with (tr(S) I - S) u = vex(R^T G - G^T R), solved with
     Tikhonov damping lambda = gradient_eps |M|_F:
-    u = (A^2 + lambda^2 I)^-1 A g. The map is self-adjoint, so with
-    ``grad = dM`` this returns the forward-mode tangent dR.
+    u = (A^2 + lambda^2 I)^-1 A g, evaluated as Re (A + i lambda I)^-1 g by
+    the 3x3 adjugate, as the CPU kernel (forming A^2 would square A's
+    condition number: ~3 digits lost in float32), elementwise over the 9
+    entries (torchrot.generic.rotation_tangent). The map is self-adjoint, so
+    with ``grad = dM`` this returns the forward-mode tangent dR.
 
     Convention: R (det +1) maximises tr(R^T M); M = sum_i w_i y_i x_i^T gives
     R x_i ~ y_i (column vectors).
@@ -417,25 +414,4 @@ def fit_rotation_backward_reference(
         ``(..., 3, 3)`` in R's dtype (reduced precision computed in float32).
     """
     check_backward(grad, R, M, gradient_eps)
-    out_dtype = R.dtype
-    compute = torch.float32 if R.dtype in (torch.float16, torch.bfloat16) else R.dtype
-    grad, R, M = grad.to(compute), R.to(compute), M.to(compute).expand(R.shape)
-    huge = torch.finfo(compute).max
-    # |M|_F without overflow: scale by the largest entry first.
-    max_abs = M.abs().amax((-2, -1), keepdim=True)
-    inv_max = torch.where(max_abs > 0, 1 / max_abs, torch.zeros_like(max_abs))  # inf if subnormal: saturated below
-    A = torch.where(max_abs > 0, M / torch.where(max_abs > 0, max_abs, torch.ones_like(max_abs)), M)
-    frob = A.square().sum((-2, -1), keepdim=True).sqrt()
-    frob = torch.where(max_abs > 0, frob, torch.ones_like(frob))
-    S = R.mT @ (A / frob)
-    S = (S + S.mT) / 2
-    eye = torch.eye(3, dtype=compute, device=R.device)
-    K = _trace(S)[..., None, None] * eye - S
-    B = R.mT @ grad
-    g = _skew_vector(B)
-    Q = K @ K + gradient_eps**2 * eye
-    u, info = torch.linalg.solve_ex(Q, K @ g[..., None])
-    u = torch.where((info == 0)[..., None], u[..., 0], torch.zeros_like(u[..., 0]))  # singular (eps = 0): dropped
-    scale = (inv_max.clamp(max=huge) / frob)[..., 0]
-    out = (R @ _cross_matrix(u)) * scale[..., None]
-    return out.clamp(-huge, huge).to(out_dtype)
+    return fit_rotation_backward_generic(grad, R, M, gradient_eps)
