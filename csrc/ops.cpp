@@ -200,7 +200,7 @@ bool has_soa_layout(const at::Tensor& t) {
 // A new result of `t`'s shape: in t's layout where that is structure of
 // arrays (so solvers that assemble their matrices that way keep it, and the
 // kernels store plain vectors), contiguous otherwise. The fake kernels
-// (torchrot/_ops.py, new_result) make the same choice.
+// (torchrot/_ops.py, _empty_result) make the same choice.
 at::Tensor new_result(const at::Tensor& t) {
   if (has_soa_layout(t)) return at::empty_strided(t.sizes(), t.strides(), t.options());
   return at::empty(t.sizes(), t.options().memory_format(at::MemoryFormat::Contiguous));
@@ -229,11 +229,8 @@ MatrixBatch broadcast_view(const at::Tensor& t, at::IntArrayRef shape, int64_t n
   return contiguous_view(keep);
 }
 
-// The warm starts of `init` (any shape (..., 3, 3)) that are not rotations:
-// the validation pass fit_rotation_out makes before writing, exposed so that
-// the benchmark can time it (benchmarks/atomic_cost.py).
-// The check is made in `compute`, the dtype of the fit: the values the fit
-// checks itself.
+// The warm starts of `init` (any shape (..., 3, 3)) that are not rotations,
+// checked in `compute`, the dtype of the fit: the values the fit checks itself.
 int64_t count_bad_warm_starts(const at::Tensor& init, at::ScalarType compute) {
   const int64_t n = init.numel() / 9;
   if (n == 0) return 0;
@@ -241,6 +238,9 @@ int64_t count_bad_warm_starts(const at::Tensor& init, at::ScalarType compute) {
   return count_bad_warm_starts_cpu(compute, n, broadcast_view(init, init.sizes(), n, compute, keep));
 }
 
+// The validation pass fit_rotation_out makes before writing, as an operator
+// (torchrot::_count_bad_warm_starts) so that the benchmark can time it
+// (benchmarks/atomic_cost.py).
 int64_t count_bad_warm_starts_op(const at::Tensor& init) {
   check_matrix_arg(init, "init");
   return count_bad_warm_starts(init, compute_dtype(init.scalar_type()));

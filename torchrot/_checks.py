@@ -131,9 +131,13 @@ def check_all(M, init, max_iter, variant) -> None:
     check_options(max_iter, variant)
 
 
-def check_gradient_eps(gradient_eps, name: str = OP_NAME) -> None:
+def check_gradient_eps_type(gradient_eps, name: str = OP_NAME) -> None:
     if isinstance(gradient_eps, bool) or not isinstance(gradient_eps, (int, float)):
         raise TypeError(f"{name}: gradient_eps must be a float >= 0, got {gradient_eps!r}")
+
+
+def check_gradient_eps(gradient_eps, name: str = OP_NAME) -> None:
+    check_gradient_eps_type(gradient_eps, name)
     if not (0 <= gradient_eps <= MAX_GRADIENT_EPS):
         raise ValueError(
             f"{name}: gradient_eps must be a finite number >= 0 and <= {MAX_GRADIENT_EPS:g}, got {gradient_eps:g}"

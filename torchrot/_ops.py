@@ -16,6 +16,7 @@ from torchrot._checks import (
     check_all,
     check_backward,
     check_gradient_eps,
+    check_gradient_eps_type,
     check_max_iter_type,
     check_out,
     check_tensor,
@@ -153,14 +154,14 @@ def _check_call(M, init, max_iter, variant, gradient_eps, out=None) -> None:
     check_variant_type(variant)
     if out is not None:
         check_tensor(out, "out")
-    if torch.compiler.is_compiling():
+    custom_eps = gradient_eps is not GRADIENT_EPS
+    if custom_eps:
+        check_gradient_eps_type(gradient_eps)
+    # All checks, in the operator's order: while traced, and for out=, whose
+    # operator does not take gradient_eps (its value is checked after the rest).
+    if torch.compiler.is_compiling() or (custom_eps and out is not None):
         check_all(M, init, max_iter, variant)
         if out is not None:
-            check_out(M, out)
-        check_gradient_eps(gradient_eps)
-    elif gradient_eps is not GRADIENT_EPS:
-        if out is not None:  # fit_rotation_out does not take it: check it after the operator's checks would run
-            check_all(M, init, max_iter, variant)
             check_out(M, out)
         check_gradient_eps(gradient_eps)
 

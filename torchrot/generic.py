@@ -357,6 +357,16 @@ def _scatter_back(x, sub, idx, valid):
     return full.scatter(0, dest, sub)[:n]
 
 
+def _advance_and_finish(st, steps, variant, converge, cap, eps):
+    """``steps`` more Cayley steps on the lanes of ``st``, then finish():
+    the Newton-Schulz clean-up and, in converged mode, the Horn fallback."""
+    _advance(st, steps, variant, converge, cap, eps)
+    R = _reorthonormalize(st["R"])
+    if converge:
+        R = _where(st["fallback"], _horn_rotation(st["A"]), R)
+    return R
+
+
 def fit_soa(A, R, running, variant, max_iter, eps):
     """Runs advance + finish on SoA state; returns (R list, iterations, fallback)."""
     n = running.shape[0]
@@ -381,10 +391,7 @@ def fit_soa(A, R, running, variant, max_iter, eps):
         sub[k] = _gather(st[k], idx, n)
     sub["running"] = sub["running"] & valid
     sub["fallback"] = sub["fallback"] & valid
-    _advance(sub, rest, variant, converge, cap, eps)
-    R_sub = _reorthonormalize(sub["R"])
-    if converge:
-        R_sub = _where(sub["fallback"], _horn_rotation(sub["A"]), R_sub)
+    R_sub = _advance_and_finish(sub, rest, variant, converge, cap, eps)
     R = [_scatter_back(r, rs, idx, valid) for r, rs in zip(R, R_sub)]
     iterations = _scatter_back(st["iterations"], sub["iterations"], idx, valid)
     fallback = _scatter_back(st["fallback"], sub["fallback"], idx, valid)
@@ -395,10 +402,7 @@ def fit_soa(A, R, running, variant, max_iter, eps):
         ov = dict(st)
         ov["running"] = st["running"] & overflow
         ov["fallback"] = st["fallback"] & overflow
-        _advance(ov, rest, variant, converge, cap, eps)
-        R_ov = _reorthonormalize(ov["R"])
-        if converge:
-            R_ov = _where(ov["fallback"], _horn_rotation(ov["A"]), R_ov)
+        R_ov = _advance_and_finish(ov, rest, variant, converge, cap, eps)
         R = _where(overflow, R_ov, R)
         iterations = torch.where(overflow, ov["iterations"], iterations)
         fallback = torch.where(overflow, ov["fallback"], fallback)
