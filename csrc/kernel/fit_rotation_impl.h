@@ -56,9 +56,8 @@ struct Tolerances {
   static constexpr int max_escapes = limits::kMaxEscapes;
   // Most steps a lane can take in converged mode.
   static constexpr int converged_budget = (max_escapes + 1) * converged_cap;
-  // Warm starts (limits.h): accepted below init_tolerance, used as they are
-  // below init_clean.
-  static constexpr T init_tolerance = T(limits::kInitTolerance);
+  // Warm starts (limits.h) are used as they are below init_clean (and
+  // accepted at all below limits::kInitTolerance, see check_warm_start).
   static constexpr T init_clean = T(sizeof(T) == 4 ? limits::kInitCleanFloat : limits::kInitCleanDouble);
 };
 

@@ -46,8 +46,8 @@ inline V determinant(const Mat3<V>& R) {
 }
 
 // A warm start R0, checked: `finite` where all its entries are finite, `bad`
-// where it is finite but not a rotation (|R0^T R0 - I|_F >= init_tolerance or
-// det R0 <= 0, limits.h), and its Gram matrix and deviation for the clean-up.
+// where it is finite but not a rotation (|R0^T R0 - I|_F >=
+// limits::kInitTolerance or det R0 <= 0), and its Gram matrix and deviation for the clean-up.
 template <typename L>
 struct WarmStartCheck {
   typename L::Mask finite, bad;
