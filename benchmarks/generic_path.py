@@ -1,15 +1,15 @@
-"""Times the device-generic path (torchrot.fit_rotation_reference) on CPU tensors.
+"""Times the device-generic path (torchrot.fit_rotation_reference, torchrot.generic).
 
-Interleaved in one process, median of several runs, ns per matrix, 1 thread,
-N = 1e5 uniform float32 (torchrot.testing.make_matrices("uniform", ...)):
-copy_ of M into a preallocated tensor (memory floor), torch.linalg.svd special
-Procrustes (torchrot.rotation_svd), fit_rotation_reference eager (the masked
-(..., 3, 3) implementation), the structure-of-arrays path torchrot.generic
-eager and under torch.compile(fullgraph=True) (max_iter=1 warm start; the
-converged graph only with --compile-converged: inductor needs >10 min for it),
-and the C++ kernel (torchrot.fit_rotation).
+Interleaved in one process, median of several runs, ns per matrix, N uniform
+matrices (torchrot.testing.make_matrices("uniform", ...)), 1 thread on CPU:
+copy_ of M into a preallocated tensor (the memory floor), torch.linalg.svd
+special Procrustes (torchrot.rotation_svd), fit_rotation_reference eager and
+under torch.compile(fullgraph=True) (converged, cold start; and the one-step
+warm start, max_iter=1), and, on CPU, the C++ kernel (torchrot.fit_rotation).
+The compiled converged graph takes about 2 minutes to compile here.
 
-    python benchmarks/generic_path.py [--n 100000] [--runs 7] [--dtype float32]
+    python benchmarks/generic_path.py [--n 100000] [--runs 7] [--dtype float32] [--no-compile]
+    python benchmarks/generic_path.py --device cuda --n 1000 10000 100000 1000000 10000000
 """
 from __future__ import annotations
 
@@ -21,57 +21,73 @@ import time
 import torch
 
 import torchrot
-from torchrot import generic
 from torchrot.testing import make_matrices
+
+
+def _methods(M: torch.Tensor, init: torch.Tensor, compile_: bool) -> dict:
+    buf = torch.empty_like(M)
+    methods = {
+        "copy_ (memory floor)": lambda: buf.copy_(M),
+        "torch.linalg.svd (rotation_svd)": lambda: torchrot.rotation_svd(M),
+        "generic eager, converged": lambda: torchrot.fit_rotation_reference(M),
+        "generic eager, init, max_iter=1": lambda: torchrot.fit_rotation_reference(M, init, max_iter=1),
+    }
+    if compile_:
+        compiled = torch.compile(torchrot.fit_rotation_reference, fullgraph=True, dynamic=False)
+        methods["generic compiled, converged"] = lambda: compiled(M)
+        methods["generic compiled, init, max_iter=1"] = lambda: compiled(M, init, max_iter=1)
+    if M.device.type == "cpu":
+        methods["C++ kernel, converged"] = lambda: torchrot.fit_rotation(M)
+        methods["C++ kernel, init, max_iter=1"] = lambda: torchrot.fit_rotation(M, init, max_iter=1)
+    return methods
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def run(n: int, device: torch.device, dtype: torch.dtype, distribution: str, runs: int, compile_: bool) -> None:
+    M = make_matrices(distribution, n, 0, dtype).to(device)
+    init = torchrot.fit_rotation(M.cpu()).to(device)
+    methods = _methods(M, init, compile_)
+    t0 = time.perf_counter()
+    for f in methods.values():  # warm-up (and compilation)
+        f()
+    _sync(device)
+    warm_up_s = time.perf_counter() - t0
+    times: dict[str, list[float]] = {k: [] for k in methods}
+    for _ in range(runs):
+        for name, f in methods.items():
+            _sync(device)
+            t = time.perf_counter()
+            f()
+            _sync(device)
+            times[name].append(time.perf_counter() - t)
+    load = os.getloadavg()
+    threads = f"{torch.get_num_threads()} thread(s)" if device.type == "cpu" else str(device)
+    print(f"\nN={n:,} {distribution} {str(dtype).removeprefix('torch.')}, {threads}, median of {runs} interleaved "
+          f"runs; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}; warm-up incl. compile {warm_up_s:.1f} s")
+    svd = statistics.median(times["torch.linalg.svd (rotation_svd)"])
+    print(f"{'method':36s} {'ns/matrix':>10s} {'x faster than SVD':>18s}")
+    for name, ts in times.items():
+        median = statistics.median(ts)
+        print(f"{name:36s} {median / n * 1e9:10.1f} {svd / median:18.2f}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--n", type=int, default=100_000)
+    parser.add_argument("--n", type=int, nargs="+", default=[100_000])
     parser.add_argument("--runs", type=int, default=7)
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     parser.add_argument("--distribution", default="uniform")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=1, help="CPU threads (default 1)")
     parser.add_argument("--compile", action=argparse.BooleanOptionalAction, default=True)
-    parser.add_argument("--compile-converged", action="store_true")
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    dtype = getattr(torch, args.dtype)
-    M = make_matrices(args.distribution, args.n, 0, dtype)
-    buf = torch.empty_like(M)
-    init = torchrot.fit_rotation(M)
-    methods = {
-        "copy_ (memory floor)": lambda: buf.copy_(M),
-        "torch.linalg.svd (rotation_svd)": lambda: torchrot.rotation_svd(M),
-        "fit_rotation_reference eager": lambda: torchrot.fit_rotation_reference(M),
-        "generic.fit_rotation eager (SoA)": lambda: generic.fit_rotation(M),
-        "SoA eager, init, max_iter=1": lambda: generic.fit_rotation(M, init, max_iter=1),
-        "C++ kernel (fit_rotation)": lambda: torchrot.fit_rotation(M),
-        "C++ kernel, init, max_iter=1": lambda: torchrot.fit_rotation(M, init, max_iter=1),
-    }
-    if args.compile:
-        one_step = torch.compile(generic.fit_rotation, fullgraph=True, dynamic=False)
-        methods["SoA compiled, init, max_iter=1"] = lambda: one_step(M, init, max_iter=1)
-    if args.compile_converged:  # inductor takes >10 min on the unrolled converged graph
-        compiled = torch.compile(generic.fit_rotation, fullgraph=True, dynamic=False)
-        methods["SoA compiled (converged)"] = lambda: compiled(M)
-    t0 = time.perf_counter()
-    for f in methods.values():  # warm-up (and compilation)
-        f()
-    compile_s = time.perf_counter() - t0
-    times = {k: [] for k in methods}
-    for _ in range(args.runs):
-        for name, f in methods.items():
-            t = time.perf_counter()
-            f()
-            times[name].append(time.perf_counter() - t)
-    load = os.getloadavg()
-    print(f"N={args.n} {args.distribution} {args.dtype}, 1 thread, median of {args.runs} interleaved runs;"
-          f" load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}; warm-up incl. compile {compile_s:.1f} s")
-    svd = statistics.median(times["torch.linalg.svd (rotation_svd)"])
-    print(f"{'method':34s} {'ns/matrix':>10s} {'x faster than SVD':>18s}")
-    for name, ts in times.items():
-        med = statistics.median(ts)
-        print(f"{name:34s} {med / args.n * 1e9:10.1f} {svd / med:18.2f}")
+    torch.set_num_threads(args.threads)
+    for n in args.n:
+        run(n, torch.device(args.device), getattr(torch, args.dtype), args.distribution, args.runs, args.compile)
 
 
 if __name__ == "__main__":

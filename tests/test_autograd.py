@@ -24,6 +24,7 @@ from torchrot.testing import (
     make_matrices,
     make_warm_start,
     random_rotations,
+    soa_view,
 )
 
 op = torch.ops.torchrot
@@ -184,7 +185,7 @@ def test_every_kernel_bit_identical_to_scalar(dtype):
     """All tail lengths 0..70, contiguous and strided layouts."""
     G, R, M = _backward_case(70, dtype, seed=7)
     G_strided = G.mT.contiguous().mT  # column-major entries
-    G_soa = G.permute(1, 2, 0).contiguous().permute(2, 0, 1)  # structure of arrays (vector loads)
+    G_soa = soa_view(G)  # structure of arrays (vector loads)
     for isa in _supported_isas()[1:]:
         for n in range(0, 71):
             for g in (G[:n], G_strided[:n], G_soa[:n]):

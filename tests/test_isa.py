@@ -36,6 +36,7 @@ from torchrot.testing import (
     make_matrices,
     make_warm_start,
     random_rotations,
+    soa_view,
 )
 from torchrot.testing import cpu_kernel as forced_kernel
 
@@ -453,12 +454,6 @@ def _one_rotation(dtype) -> torch.Tensor:
     return random_rotations(1, torch.Generator().manual_seed(4242)).to(dtype)
 
 
-def _soa_copy(t: torch.Tensor) -> torch.Tensor:
-    """t's values in structure-of-arrays layout: a (3, 3, N) tensor permuted
-    to (N, 3, 3), the matrix index fastest."""
-    return t.permute(1, 2, 0).contiguous().permute(2, 0, 1)
-
-
 # layout -> (M, init) -> (M_layout, init_layout); values equal the inputs'
 # except for "transposed", which fits the transposed matrices (M.mT)
 LAYOUTS = {
@@ -471,11 +466,11 @@ LAYOUTS = {
     # contiguous M and init, strided out=
     "strided_out": lambda M, init: (M.clone(), init.clone()),
     # structure of arrays (plain vector loads and stores), fresh results in it too
-    "soa": lambda M, init: (_soa_copy(M), _soa_copy(init)),
+    "soa": lambda M, init: (soa_view(M), soa_view(init)),
     # structure of arrays for M, init and out=
-    "soa_out": lambda M, init: (_soa_copy(M), _soa_copy(init)),
+    "soa_out": lambda M, init: (soa_view(M), soa_view(init)),
 }
-OUT_LAYOUTS = {"strided_out": _strided_copy, "soa_out": _soa_copy}
+OUT_LAYOUTS = {"strided_out": _strided_copy, "soa_out": soa_view}
 
 
 @pytest.mark.parametrize("layout", list(LAYOUTS))

@@ -1,35 +1,32 @@
 """The device-generic kernel, structure of arrays: torchrot's algorithm for
-accelerators (and any device), written as elementwise tensor operations.
+accelerators (and any device), written as elementwise tensor operations. It
+is the body of :func:`torchrot.fit_rotation_reference`, the kernel of the
+operators on every device without a native one.
 
 Every matrix is held as 9 separate ``(n,)`` tensors (its entries, row-major),
 and every step of the C++ kernel (csrc/kernel/fit_rotation_impl.h: begin_fit /
 advance / finish; cayley.h, cold_start.h, optimality.h, saddle_escape.h,
 horn_fallback.h) is spelled out entry by entry, with per-matrix masks instead
-of branches. No host synchronisation (no ``.item()``, no ``bool(tensor)``, no
-data-dependent shapes), so ``torch.compile(fullgraph=True)`` fuses it into a
-few loops (Triton kernels on CUDA, C++ on CPU).
+of branches, so each lane executes the kernel's state machine: in float64 the
+same iteration counts and status codes (tests/test_generic_path.py).
 
-Schedule (converged mode): the whole batch takes ``FULL_STEPS`` masked Cayley
-steps (most matrices converge within them, see benchmarks/generic_path.py);
-then the matrices still running or needing the fallback are compacted, without
-a host sync (cumsum + scatter into a buffer of static size
-``straggler_capacity(n)``), and take the rest of the kernel's step budget
-(saddle escapes included) and the Horn fallback (fixed Jacobi sweeps in
-float64) there; results are scattered back. Each lane executes exactly the
-kernel's state machine, so results, iteration counts and status codes do not
-depend on the tiering (as in the kernel, which regroups slow lanes too).
+Schedule (converged mode): the whole batch takes up to ``FULL_STEPS`` masked
+Cayley steps (most matrices converge within them), saddle escapes deferred;
+the matrices still running, pending an escape or needing the fallback are
+then compacted and take the rest of the kernel's step budget (escapes
+included) and the Horn fallback (float64 eigh) there;
+results are scattered back. Eagerly the compaction is exact (a host read) and
+loops stop when no lane runs. Compiled, there is no data-dependent shape and
+no graph break: the buffer has the static size ``straggler_capacity(n)``
+(cumsum + scatter), lanes that do not fit take the rest on the whole batch,
+masked, and the loops and the rare pieces are ``while_loop`` / ``cond`` graph
+operations (see _repeat), so ``torch.compile(fullgraph=True)`` compiles the
+whole algorithm as one graph (Triton kernels on CUDA, C++ on CPU) in about
+two minutes on a 2-core CPU. Their predicates (whether any lane still runs)
+are the only values the host reads: one flag per loop iteration (about a
+dozen per call), instead of running the whole step budget on every lane.
 
-Status (work in progress, not yet behind fit_rotation_reference's forward;
-its backward, rotation_tangent, is): matches the C++ kernel's iteration
-counts and status codes in float64 and meets testing.CRITERIA on every
-distribution and edge case (tests/test_generic_path.py). Not yet fast:
-- lanes that do not fit in the straggler buffer (more than
-  straggler_capacity(n) matrices needing more than FULL_STEPS steps, e.g. a
-  batch of rank-1 matrices) are completed by a whole-batch masked pass
-  (``_COMPLETE_OVERFLOW``, on by default: correctness first). Without a host
-  sync it cannot be skipped, so it is always paid (~4x the eager cost);
-- the converged graph (36 unrolled steps, two unrolled Jacobi fallbacks) takes
-  inductor more than 10 minutes to compile; max_iter <= 8 compiles in ~1 min.
+Speed: benchmarks/generic_path.py.
 """
 from __future__ import annotations
 
@@ -55,16 +52,18 @@ STATUS_CAYLEY, STATUS_FALLBACK, STATUS_BAD_INIT, STATUS_NON_FINITE = 0, 1, 2, 3
 #: steps run on the whole batch).
 FULL_STEPS = 6
 FULL_STEPS_MAX_ITER = 8
-#: Jacobi sweeps of the fallback (4x4, cyclic: quadratic convergence).
-JACOBI_SWEEPS = 6
-#: Fraction of the batch the compacted straggler buffer holds (at least
-#: STRAGGLER_MIN lanes, at most the batch).
-STRAGGLER_FRACTION = 0.125
+#: Compiled, the straggler buffer holds 1/STRAGGLER_DIVISOR of the batch (at
+#: least STRAGGLER_MIN lanes, at most the batch); more stragglers than that
+#: take the rest of their steps on the whole batch. Uniform [0, 1] matrices,
+#: float32, N = 1e5: 0.35% need more than FULL_STEPS steps from the cold start.
+STRAGGLER_DIVISOR = 8
 STRAGGLER_MIN = 1024
 
 
 def straggler_capacity(n: int) -> int:
-    return min(n, max(STRAGGLER_MIN, int(math.ceil(n * STRAGGLER_FRACTION))))
+    """Lanes of the compiled straggler buffer for a batch of n (integer
+    arithmetic, so that a symbolic n of a dynamic-shape graph stays symbolic)."""
+    return min(n, max(STRAGGLER_MIN, -(-n // STRAGGLER_DIVISOR)))
 
 
 # ---------------------------------------------------------------------------
@@ -72,13 +71,18 @@ def straggler_capacity(n: int) -> int:
 # ---------------------------------------------------------------------------
 
 
+def _dot3(a0, b0, a1, b1, a2, b2):
+    """a0 b0 + a1 b1 + a2 b2 in three ops (addcmul: eager makes one pass per op)."""
+    return torch.addcmul(torch.addcmul(a0 * b0, a1, b1), a2, b2)
+
+
 def _tmul(R, A):
     """R^T A."""
-    return [R[r] * A[c] + R[3 + r] * A[3 + c] + R[6 + r] * A[6 + c] for r in range(3) for c in range(3)]
+    return [_dot3(R[r], A[c], R[3 + r], A[3 + c], R[6 + r], A[6 + c]) for r in range(3) for c in range(3)]
 
 
 def _mul(A, B):
-    return [A[3 * r] * B[c] + A[3 * r + 1] * B[3 + c] + A[3 * r + 2] * B[6 + c] for r in range(3) for c in range(3)]
+    return [_dot3(A[3 * r], B[c], A[3 * r + 1], B[3 + c], A[3 * r + 2], B[6 + c]) for r in range(3) for c in range(3)]
 
 
 def _where(mask, X, Y):
@@ -215,61 +219,114 @@ def _saddle_escape_rotation(S, squarings=4):
     return [k * v[r] * v[c] - (1 if r == c else 0) for r in range(3) for c in range(3)]
 
 
+#: start_candidates (cold_start.h): the quaternions (times 2) of the identity,
+#: the three half-turns and the eight (1, +-1, +-1, +-1), in the kernel's order.
+_START_QUATERNIONS = [(2, 0, 0, 0), (0, 2, 0, 0), (0, 0, 2, 0), (0, 0, 0, 2)] + [
+    (1, *(-1 if (signs >> b) & 1 else 1 for b in range(3))) for signs in range(8)]
+
+
 def _best_start_rotation(A):
+    """The start candidate of largest objective q^T K q (first of equals)."""
     K = _horn(A)
-    best = K[0]
-    q = [torch.full_like(best, 2.0), torch.zeros_like(best), torch.zeros_like(best), torch.zeros_like(best)]
-
-    def keep(value, cand):
-        nonlocal best, q
-        better = value > best
-        best = torch.where(better, value, best)
-        q = [torch.where(better, float(ci), qi) for ci, qi in zip(cand, q)]
-
-    keep(K[5], (0, 2, 0, 0))
-    keep(K[10], (0, 0, 2, 0))
-    keep(K[15], (0, 0, 0, 2))
-    for signs in range(8):
-        s1, s2, s3 = (-1 if (signs >> b) & 1 else 1 for b in range(3))
-        value = 0.5 * (s1 * K[1] + s2 * K[2] + s3 * K[3] + (s1 * s2) * K[6] + (s1 * s3) * K[7] + (s2 * s3) * K[11])
-        keep(value, (1, s1, s2, s3))
-    return _quaternion_rotation(*(0.5 * x for x in q))
+    values = [K[0], K[5], K[10], K[15]]
+    for _, s1, s2, s3 in _START_QUATERNIONS[4:]:
+        values.append(0.5 * (s1 * K[1] + s2 * K[2] + s3 * K[3] + (s1 * s2) * K[6] + (s1 * s3) * K[7] + (s2 * s3) * K[11]))
+    best, index = values[0], torch.zeros(values[0].shape, dtype=torch.int64, device=values[0].device)
+    for i, value in enumerate(values[1:], 1):
+        index = torch.where(value > best, i, index)  # strict: the first of equals wins, as in the kernel
+        best = torch.maximum(best, value)
+    table = torch.tensor(_START_QUATERNIONS, dtype=A[0].dtype, device=A[0].device).t() * 0.5
+    return _quaternion_rotation(*(table[j].take(index) for j in range(4)))
 
 
 def _horn_rotation(A):
-    """Horn's method, float64, JACOBI_SWEEPS cyclic Jacobi sweeps (fixed)."""
-    Ad = [a.double() for a in A]
-    K = _horn(Ad)
-    one, zero = torch.ones_like(Ad[0]), torch.zeros_like(Ad[0])
-    V = [one if i % 5 == 0 else zero for i in range(16)]
-    for _ in range(JACOBI_SWEEPS):
-        for p in range(4):
-            for q in range(p + 1, 4):
-                apq = K[4 * p + q]
-                nonzero = apq != 0
-                safe = torch.where(nonzero, apq, one)
-                tau = (K[5 * q] - K[5 * p]) / (2 * safe)
-                t = torch.where(tau >= 0, one, -one) / (tau.abs() + torch.sqrt(1 + tau * tau))
-                t = torch.where(nonzero & torch.isfinite(t), t, zero)
-                c = 1 / torch.sqrt(1 + t * t)
-                s = t * c
-                for k in range(4):
-                    akp, akq = K[4 * k + p], K[4 * k + q]
-                    K[4 * k + p], K[4 * k + q] = c * akp - s * akq, s * akp + c * akq
-                for k in range(4):
-                    apk, aqk = K[4 * p + k], K[4 * q + k]
-                    K[4 * p + k], K[4 * q + k] = c * apk - s * aqk, s * apk + c * aqk
-                for k in range(4):
-                    vkp, vkq = V[4 * k + p], V[4 * k + q]
-                    V[4 * k + p], V[4 * k + q] = c * vkp - s * vkq, s * vkp + c * vkq
-    top_val, qv = K[0], [V[0], V[4], V[8], V[12]]
-    for i in range(1, 4):
-        larger = K[5 * i] > top_val
-        top_val = torch.where(larger, K[5 * i], top_val)
-        qv = [torch.where(larger, V[4 * r + i], qv[r]) for r in range(4)]
-    inv = 1 / torch.sqrt(qv[0] * qv[0] + qv[1] * qv[1] + qv[2] * qv[2] + qv[3] * qv[3])
-    R = _quaternion_rotation(*(x * inv for x in qv))
-    return [r.to(A[0].dtype) for r in R]
+    """The guaranteed fallback (horn_fallback.h): Horn's quaternion method in
+    float64, the top eigenvector of K by torch.linalg.eigh (an extern kernel:
+    the kernel's unrolled Jacobi sweeps would be a pointwise chain too deep
+    for inductor to compile)."""
+    K = torch.stack(_horn([a.double() for a in A]), -1).reshape(-1, 4, 4)
+    q = torch.linalg.eigh(K).eigenvectors[..., 3]  # eigenvalues ascending: the largest is last
+    return [r.to(A[0].dtype) for r in _quaternion_rotation(q[:, 0], q[:, 1], q[:, 2], q[:, 3])]
+
+
+# ---------------------------------------------------------------------------
+# Control flow: data-dependent, without host synchronisation when compiled
+# ---------------------------------------------------------------------------
+#
+# Eager, the loops stop as soon as no lane runs and the rare pieces (saddle
+# escapes, the Horn fallback, the overflow pass) run only when some lane needs
+# them: one host read of a mask each (free on CPU). Compiled, the same
+# decisions are graph operations (torch._higher_order_ops.while_loop,
+# torch.cond), traced once each: no graph break, no unrolling (the graph stays
+# small enough to compile in about two minutes). Both spellings take the same
+# decisions, so results do not depend on the mode.
+
+
+def _compiling() -> bool:
+    return torch.compiler.is_compiling()
+
+
+def _any(mask: torch.Tensor) -> bool:
+    """Eager only: whether some lane of ``mask`` is set (``meta``: assume so)."""
+    return mask.device.type == "meta" or bool(mask.any())
+
+
+def _masked_update(mask, fn, R, operands):
+    """R (9 tensors) with the lanes of ``mask`` replaced by ``fn(*operands)``,
+    which is computed only when some lane is set."""
+    if not _compiling():  # only the lanes of mask, gathered
+        if mask.device.type == "meta":
+            return _where(mask, fn(*operands), R)
+        idx = mask.nonzero().squeeze(1)
+        if idx.numel() == 0:
+            return R
+        return [r.index_put((idx,), v) for r, v in zip(R, fn(*(x[idx] for x in operands)))]
+    k = len(R)
+
+    def replace(mask, *xs):
+        return tuple(_where(mask, fn(*xs[k:]), list(xs[:k])))
+
+    def keep(mask, *xs):
+        return tuple(x.clone() for x in xs[:k])
+
+    return list(torch.cond(mask.any(), replace, keep, (mask, *R, *operands)))
+
+
+_LANE_KEYS = ("running", "fallback", "switched", "iterations", "attempt", "escapes", "pending")
+
+
+def _repeat(step, st, steps):
+    """Up to ``steps`` applications of ``step`` to the lane state ``st``
+    (a dict: ``A``, ``R`` and _LANE_KEYS), stopping once no lane runs."""
+    if steps <= 0:
+        return st
+    if not _compiling():
+        for _ in range(steps):
+            if not _any(st["running"]):
+                break
+            st = step(st)
+        return st
+    from torch._higher_order_ops.while_loop import while_loop
+
+    A = st["A"]
+    pack = lambda s: (*s["R"], *(s[k] for k in _LANE_KEYS))
+
+    def unpack(xs):
+        return {"A": A, "R": list(xs[:9]), **dict(zip(_LANE_KEYS, xs[9:]))}
+
+    def cond(i, *xs):
+        return (i < steps) & xs[9].any()  # xs[9]: running
+
+    def body(i, *xs):
+        out = pack(step(unpack(xs)))
+        return (i + 1, *(o.clone() if any(o is x for x in xs) else o for o in out))
+
+    carried, seen = [], set()
+    for x in pack(st):  # while_loop rejects carried inputs that alias each other
+        carried.append(x.clone() if id(x) in seen else x)
+        seen.add(id(x))
+    counter = torch.zeros((), dtype=torch.int64, device=A[0].device)
+    return unpack(while_loop(cond, body, (counter, *carried))[1:])
 
 
 # ---------------------------------------------------------------------------
@@ -279,59 +336,79 @@ def _horn_rotation(A):
 _INT = torch.int32
 
 
-def _advance(st, steps, variant, converge, cap, eps):
-    """`steps` masked Cayley steps of the kernel's advance() on state `st`."""
+def _step(st, variant, converge, cap, eps):
+    """One masked Cayley step of the kernel's advance() on the lane state.
+
+    A lane that stops at a saddle point (converged mode) with escapes left is
+    marked ``pending`` and stops running; _apply_pending_escapes applies the
+    escape and restarts it, as the kernel does within the same step."""
     A, R = st["A"], st["R"]
     running, fallback, switched = st["running"], st["fallback"], st["switched"]
     iterations, attempt, escapes = st["iterations"], st["attempt"], st["escapes"]
     tiny = torch.finfo(A[0].dtype).tiny
     undamped_tol = 3.4526698e-4 if A[0].dtype == torch.float32 else 1.4901161193847656e-8
-    for _ in range(steps):
-        S = _tmul(R, A)
-        t = S[0] + S[4] + S[8]
-        m = (S[7] - S[5], S[2] - S[6], S[3] - S[1])
-        mm = m[0] * m[0] + m[1] * m[1] + m[2] * m[2]
-        c = _objective_estimate(S, t, mm, variant)
-        if converge and variant == "gershgorin":
-            c = torch.where(switched, _objective_estimate(S, t, mm, "conservative"), c)
-        w, d, ww, dd = _cayley_step(S, t, m, c)
-        norm2 = dd + ww
-        valid = (dd > 0) & torch.isfinite(norm2) & (norm2 > tiny)
-        stepping = running & valid
-        stalled = running & ~valid
-        safe_d = torch.where(stepping, d, 1.0)
-        safe_dd = torch.where(stepping, dd, 1.0)
-        safe_w = [torch.where(stepping, x, 0.0) for x in w]
-        Q = _cayley_rotation(safe_w, safe_d, torch.where(stepping, ww, 0.0), safe_dd)
-        R = _where(stepping, _mul(R, Q), R)
-        step_i = stepping.to(_INT)
-        iterations = iterations + step_i
-        attempt = attempt + step_i
-        undamped = ~(c - t > undamped_tol * t.abs())
-        finished = stepping & undamped & (ww < eps * dd)
-        if converge:
-            switch_now = (ww < ESTIMATE_SWITCH * dd) | (attempt >= GERSHGORIN_STEPS)
-            switched = switched | (stepping & switch_now)
-            at_max = finished & _is_maximum(S, MAX_CHECK_SLACK_EPS * eps)
-            saddle = finished & ~at_max
-            escape = saddle & (escapes < MAX_ESCAPES)
-            fallback = fallback | (saddle & ~escape)
-            R = _where(escape, _mul(R, _saddle_escape_rotation(_tmul(R, A))), R)
-            escapes = escapes + escape.to(_INT)
-            attempt = torch.where(escape, 0, attempt)
-            switched = switched & ~escape
-            finished = finished & ~escape
-            exhausted = stepping & ~finished & (attempt >= cap)
-            fallback = fallback | exhausted | stalled
-            finished = finished | exhausted | stalled
-        else:
-            finished = finished | stalled | (attempt >= cap)
-        running = running & ~finished
-    st.update(R=R, running=running, fallback=fallback, switched=switched,
-              iterations=iterations, attempt=attempt, escapes=escapes)
+    S = _tmul(R, A)
+    t = S[0] + S[4] + S[8]
+    m = (S[7] - S[5], S[2] - S[6], S[3] - S[1])
+    mm = m[0] * m[0] + m[1] * m[1] + m[2] * m[2]
+    c = _objective_estimate(S, t, mm, variant)
+    if converge and variant == "gershgorin":
+        c = torch.where(switched, _objective_estimate(S, t, mm, "conservative"), c)
+    w, d, ww, dd = _cayley_step(S, t, m, c)
+    norm2 = dd + ww
+    valid = (dd > 0) & torch.isfinite(norm2) & (norm2 > tiny)
+    stepping = running & valid
+    stalled = running & ~valid
+    safe_d = torch.where(stepping, d, 1.0)
+    safe_dd = torch.where(stepping, dd, 1.0)
+    safe_w = [torch.where(stepping, x, 0.0) for x in w]
+    # Lanes not stepping get Q = I exactly (w = 0, d = 1): R Q = R, no select needed.
+    Q = _cayley_rotation(safe_w, safe_d, torch.where(stepping, ww, 0.0), safe_dd)
+    R = _mul(R, Q)
+    step_i = stepping.to(_INT)
+    iterations = iterations + step_i
+    attempt = attempt + step_i
+    undamped = ~(c - t > undamped_tol * t.abs())
+    finished = stepping & undamped & (ww < eps * dd)
+    pending = st["pending"]
+    if converge:
+        switch_now = (ww < ESTIMATE_SWITCH * dd) | (attempt >= GERSHGORIN_STEPS)
+        switched = switched | (stepping & switch_now)
+        saddle = finished & ~_is_maximum(S, MAX_CHECK_SLACK_EPS * eps)
+        escape = saddle & (escapes < MAX_ESCAPES)
+        fallback = fallback | (saddle & ~escape)
+        pending = pending | escape
+        exhausted = stepping & ~finished & (attempt >= cap)
+        fallback = fallback | exhausted | stalled
+        finished = finished | exhausted | stalled
+    else:
+        finished = finished | stalled | (attempt >= cap)
+    return dict(st, R=R, running=running & ~finished, fallback=fallback, switched=switched,
+                iterations=iterations, attempt=attempt, pending=pending)
 
 
-_LANE_KEYS = ("running", "fallback", "switched", "iterations", "attempt", "escapes")
+def _apply_pending_escapes(st):
+    """The saddle escape (saddle_escape.h) of the pending lanes, which then run again."""
+    pending = st["pending"]
+    if not _compiling() and not _any(pending):
+        return st
+    R = _masked_update(pending, lambda *RA: _mul(list(RA[:9]), _saddle_escape_rotation(_tmul(list(RA[:9]), list(RA[9:])))),
+                       st["R"], (*st["R"], *st["A"]))
+    return dict(st, R=R, running=st["running"] | pending, pending=pending & False,
+                escapes=st["escapes"] + pending.to(_INT), attempt=torch.where(pending, 0, st["attempt"]),
+                switched=st["switched"] & ~pending)
+
+
+def _advance_and_finish(st, steps, variant, converge, cap, eps):
+    """Pending escapes, up to ``steps`` more Cayley steps on the lanes of
+    ``st``, then finish(): the Newton-Schulz clean-up and, in converged mode,
+    the Horn fallback. Returns (R, final state)."""
+    st = _apply_pending_escapes(st)
+    st = _repeat(lambda s: _apply_pending_escapes(_step(s, variant, converge, cap, eps)), st, steps)
+    R = _reorthonormalize(st["R"])
+    if converge:
+        R = _masked_update(st["fallback"], lambda *A: _horn_rotation(list(A)), R, st["A"])
+    return R, st
 
 
 def _compact_indices(sel, capacity):
@@ -357,18 +434,21 @@ def _scatter_back(x, sub, idx, valid):
     return full.scatter(0, dest, sub)[:n]
 
 
-def _advance_and_finish(st, steps, variant, converge, cap, eps):
-    """``steps`` more Cayley steps on the lanes of ``st``, then finish():
-    the Newton-Schulz clean-up and, in converged mode, the Horn fallback."""
-    _advance(st, steps, variant, converge, cap, eps)
-    R = _reorthonormalize(st["R"])
-    if converge:
-        R = _where(st["fallback"], _horn_rotation(st["A"]), R)
-    return R
+def _masked_lanes(st, mask):
+    """``st`` restricted to the lanes of ``mask`` (the others neither run nor fall back)."""
+    return dict(st, running=st["running"] & mask, fallback=st["fallback"] & mask, pending=st["pending"] & mask)
 
 
 def fit_soa(A, R, running, variant, max_iter, eps):
-    """Runs advance + finish on SoA state; returns (R list, iterations, fallback)."""
+    """Runs advance + finish on SoA state; returns (R list, iterations, fallback).
+
+    Schedule: every lane takes up to FULL_STEPS steps on the whole batch
+    (saddle escapes deferred); the lanes still running, falling back or
+    pending an escape are then compacted into a buffer of
+    straggler_capacity(n) lanes that takes the rest of the step budget and
+    the fallback; lanes that did not fit (more stragglers than the buffer
+    holds: rare) take it on the whole batch, masked. Each lane executes the
+    kernel's state machine, so results do not depend on the tiering."""
     n = running.shape[0]
     converge = max_iter is None
     cap = CONVERGED_CAP if converge else max_iter
@@ -376,40 +456,43 @@ def fit_soa(A, R, running, variant, max_iter, eps):
     zeros_b = torch.zeros_like(running)
     zeros_i = torch.zeros(running.shape, dtype=_INT, device=running.device)
     st = {"A": A, "R": R, "running": running, "fallback": zeros_b, "switched": zeros_b,
-          "iterations": zeros_i, "attempt": zeros_i, "escapes": zeros_i}
+          "iterations": zeros_i, "attempt": zeros_i, "escapes": zeros_i, "pending": zeros_b}
     full = budget if (not converge and max_iter <= FULL_STEPS_MAX_ITER) else min(FULL_STEPS, budget)
-    _advance(st, full, variant, converge, cap, eps)
+    # A lane pending an escape after step k <= FULL_STEPS needs at most
+    # MAX_ESCAPES * CONVERGED_CAP more steps (<= budget - FULL_STEPS).
+    st = _repeat(lambda s: _step(s, variant, converge, cap, eps), st, full)
     rest = budget - full
     capacity = straggler_capacity(n) if n > 0 else 0
     R = _reorthonormalize(st["R"])
     if capacity == 0 or (rest == 0 and not converge):
         return R, st["iterations"], st["fallback"]
-    sel = st["running"] | st["fallback"]
+    sel = st["running"] | st["fallback"] | st["pending"]
+    if not _compiling():
+        # Eager: host reads are allowed, so the stragglers are compacted exactly.
+        if not _any(sel):
+            return R, st["iterations"], st["fallback"]
+        if sel.device.type != "meta":
+            idx = sel.nonzero().squeeze(1)
+            sub = {"A": [a[idx] for a in st["A"]], "R": [r[idx] for r in st["R"]], **{k: st[k][idx] for k in _LANE_KEYS}}
+            R_sub, sub = _advance_and_finish(sub, rest, variant, converge, cap, eps)
+            put = lambda x, y: x.index_put((idx,), y)
+            return [put(r, rs) for r, rs in zip(R, R_sub)], put(st["iterations"], sub["iterations"]), put(st["fallback"], sub["fallback"])
     idx, valid, overflow = _compact_indices(sel, capacity)
     sub = {"A": [_gather(a, idx, n) for a in st["A"]], "R": [_gather(r, idx, n) for r in st["R"]]}
     for k in _LANE_KEYS:
         sub[k] = _gather(st[k], idx, n)
-    sub["running"] = sub["running"] & valid
-    sub["fallback"] = sub["fallback"] & valid
-    R_sub = _advance_and_finish(sub, rest, variant, converge, cap, eps)
+    R_sub, sub = _advance_and_finish(_masked_lanes(sub, valid), rest, variant, converge, cap, eps)
     R = [_scatter_back(r, rs, idx, valid) for r, rs in zip(R, R_sub)]
     iterations = _scatter_back(st["iterations"], sub["iterations"], idx, valid)
     fallback = _scatter_back(st["fallback"], sub["fallback"], idx, valid)
-    if _COMPLETE_OVERFLOW:
-        # Lanes that did not fit: the rest of the budget on the whole batch,
-        # masked to them (costs the whole batch; only matters when more than
-        # `capacity` lanes straggle).
-        ov = dict(st)
-        ov["running"] = st["running"] & overflow
-        ov["fallback"] = st["fallback"] & overflow
-        R_ov = _advance_and_finish(ov, rest, variant, converge, cap, eps)
+    if _compiling() or _any(overflow):
+        # The lanes that did not fit, on the whole batch, masked (eager:
+        # only when there are such lanes; compiled: its loop stops at once).
+        R_ov, ov = _advance_and_finish(_masked_lanes(st, overflow), rest, variant, converge, cap, eps)
         R = _where(overflow, R_ov, R)
         iterations = torch.where(overflow, ov["iterations"], iterations)
         fallback = torch.where(overflow, ov["fallback"], fallback)
     return R, iterations, fallback
-
-
-_COMPLETE_OVERFLOW = True
 
 
 def _components(X, n):
@@ -430,38 +513,48 @@ def _normalized(M):
     return [(x * lift) * inv for x in M], max_abs, zero
 
 
-def fit_rotation_generic(M, init, max_iter, variant, return_info, bad_init_error):
-    """The body of fit_rotation_reference (arguments already checked)."""
-    out_dtype = M.dtype
-    compute = torch.float32 if M.dtype in (torch.float16, torch.bfloat16) else M.dtype
+def _warm_start_components(init, compute):
+    """init's 9 components in ``compute``, in init's batch shape, with its
+    Gram matrix, finiteness, rejection (check_warm_start, optimality.h) and
+    squared deviation from orthonormality."""
+    batch = init.shape[:-2]
+    I = [x.reshape(batch) for x in _components(init.to(compute), math.prod(batch))]
+    G = _gram(I)
+    finite = torch.isfinite(G[0] + G[4] + G[8])
+    dev2 = _deviation2(G)
+    bad = finite & ~((dev2 < INIT_TOLERANCE**2) & (_det(I) > 0))
+    return I, G, finite, bad, dev2
+
+
+def _compute_dtype(dtype):
+    return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
+
+
+def _fit_core(M, init, max_iter, variant):
+    """(R, iterations, status) for M: the whole algorithm as tensor operations
+    (no host read when compiled; see _repeat)."""
+    compute = _compute_dtype(M.dtype)
     shape = M.shape
     batch = shape[:-2]
     n = math.prod(batch)
     eps = torch.finfo(compute).eps
-    Mc = _components(M.to(compute), n)
-    A, max_abs, zero = _normalized(Mc)
+    A, max_abs, zero = _normalized(_components(M.to(compute), n))
     finite = torch.isfinite(max_abs)
     bad_init = torch.zeros_like(finite)
     if init is not None:
-        init_c = init.to(compute)
-        I = [x.reshape(init.shape[:-2]) for x in _components(init_c, math.prod(init.shape[:-2]))]
-        G = _gram(I)
-        init_finite = torch.isfinite(G[0] + G[4] + G[8])
-        dev2 = _deviation2(G)
-        rotation = (dev2 < INIT_TOLERANCE**2) & (_det(I) > 0)
-        init_bad = init_finite & ~rotation
-        if M.device.type != "meta" and not torch.compiler.is_compiling() and bool(init_bad.any()):
-            raise bad_init_error(int(init_bad.sum()), init_bad.numel())
+        I, G, init_finite, init_bad, dev2 = _warm_start_components(init, compute)
         ex = lambda t: t.expand(batch).reshape(n)
         init_finite, init_bad, dev2 = ex(init_finite), ex(init_bad), ex(dev2)
-        I = [ex(x) for x in I]
-        G = [ex(g) for g in G]
+        R, G = [ex(x) for x in I], [ex(g) for g in G]
         finite = finite & init_finite
         bad_init = init_bad
+        # clean_warm_start: masked Newton-Schulz steps for lanes above the
+        # dtype's clean threshold (eager: only while some lane needs one).
         clean2 = INIT_CLEAN[str(compute).removeprefix("torch.")] ** 2
         rough = init_finite & ~init_bad & ~(dev2 < clean2)
-        R = I
         for _ in range(INIT_CLEAN_STEPS):
+            if not _compiling() and not _any(rough):
+                break
             R = _where(rough, _reorthonormalize(R, G), R)
             G = _gram(R)
             rough = rough & ~(_deviation2(G) < clean2)
@@ -472,13 +565,54 @@ def fit_rotation_generic(M, init, max_iter, variant, return_info, bad_init_error
     R, iterations, fallback = fit_soa(A, R, running, variant, max_iter, eps)
     nan_lane = ~finite | bad_init
     R = [torch.where(nan_lane, float("nan"), r) for r in R]
-    out = torch.stack(R, -1).reshape(shape).to(out_dtype)
-    if not return_info:
-        return out
+    out = torch.stack(R, -1).reshape(shape).to(M.dtype)
     status = torch.where(fallback, STATUS_FALLBACK, STATUS_CAYLEY)
     status = torch.where(bad_init, STATUS_BAD_INIT, status)
     status = torch.where(finite, status, STATUS_NON_FINITE).to(torch.uint8)
     return out, iterations.reshape(batch), status.reshape(batch)
+
+
+#: Device types whose tensors run the algorithm compiled
+#: (torch.compile(fullgraph=True): fused kernels, no host read); others, and
+#: these when compilation fails (e.g. no Triton), run it eagerly.
+COMPILED_DEVICE_TYPES = frozenset({"cuda", "xpu"})
+_compiled_cores: dict = {}
+
+
+def _core_for(device: torch.device):
+    if device.type not in COMPILED_DEVICE_TYPES or _compiling():
+        return _fit_core
+    if device.type not in _compiled_cores:
+        _compiled_cores[device.type] = torch.compile(_fit_core, fullgraph=True)
+    return _compiled_cores[device.type]
+
+
+def _run_core(M, init, max_iter, variant):
+    core = _core_for(M.device)
+    if core is _fit_core:
+        return core(M, init, max_iter, variant)
+    try:
+        return core(M, init, max_iter, variant)
+    except Exception as error:  # e.g. no Triton for this device: run eagerly from now on
+        import warnings
+
+        warnings.warn(f"torchrot: torch.compile failed on {M.device.type} tensors ({type(error).__name__}: "
+                      f"{error}); the device-generic path runs eagerly", RuntimeWarning, stacklevel=3)
+        _compiled_cores[M.device.type] = _fit_core
+        return _fit_core(M, init, max_iter, variant)
+
+
+def fit_rotation_generic(M, init, max_iter, variant, return_info, bad_init_error):
+    """The body of fit_rotation_reference (arguments already checked): raises
+    ``bad_init_error(count, total)`` for a finite warm start that is not a
+    rotation (eager, before anything else; not on ``meta`` tensors nor while
+    traced, where such lanes come back NaN with status STATUS_BAD_INIT)."""
+    if init is not None and M.device.type != "meta" and not _compiling():
+        init_bad = _warm_start_components(init, _compute_dtype(M.dtype))[3]
+        if bool(init_bad.any()):
+            raise bad_init_error(int(init_bad.sum()), init_bad.numel())  # counted in init's own shape
+    R, iterations, status = _run_core(M, init, max_iter, variant)
+    return (R, iterations, status) if return_info else R
 
 
 def rotation_tangent(X, R, M, damping):
@@ -548,12 +682,3 @@ def fit_rotation_backward_generic(grad, R, M, gradient_eps):
     Mc = _components(M.to(compute).expand(shape), n)
     T = rotation_tangent(Gc, Rc, Mc, gradient_eps)
     return torch.stack(T, -1).reshape(shape).to(out_dtype)
-
-
-def fit_rotation(M, init=None, *, max_iter=None, variant="conservative", return_info=False):
-    """fit_rotation_reference's contract on this module's path (the
-    candidate replacement of torchrot.reference.fit_rotation_reference's body)."""
-    from torchrot._checks import bad_init_error, check_all
-
-    check_all(M, init, max_iter, variant)
-    return fit_rotation_generic(M, init, max_iter, variant, return_info, bad_init_error)

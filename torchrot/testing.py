@@ -37,6 +37,13 @@ def bits(t: torch.Tensor) -> torch.Tensor:
     return t.view(_INTEGER_VIEW[t.dtype]) if t.dtype in _INTEGER_VIEW else t
 
 
+def soa_view(t: torch.Tensor) -> torch.Tensor:
+    """t's values ``(N, 3, 3)`` in structure-of-arrays layout: a new (3, 3, N)
+    tensor permuted to (N, 3, 3), the matrix index fastest (the layout of a
+    solver's vectorised covariances, which the kernels load as plain vectors)."""
+    return t.permute(1, 2, 0).contiguous().permute(2, 0, 1)
+
+
 def rotations(shape: int | tuple[int, ...], seed: int = 0, dtype: torch.dtype = torch.float64,
               max_angle: float = math.pi) -> torch.Tensor:
     """``(*shape, 3, 3)`` random rotations (angles up to ``max_angle``) from

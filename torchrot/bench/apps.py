@@ -106,10 +106,6 @@ def run_table(plan: AppsPlan, name: str, dtype: torch.dtype, cache: str | None,
                           plan.min_run_time, log, warm=True, slow_repeats=plan.slow_repeats)
 
 
-def _arap_mesh(plan: AppsPlan):
-    return load_surface(plan.arap.mesh_path) if plan.arap.mesh_path else capsule(plan.arap.resolution)
-
-
 def _label(dtype: torch.dtype) -> str:
     return str(dtype).replace("torch.", "")
 

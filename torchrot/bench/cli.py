@@ -122,6 +122,7 @@ def bench(args: argparse.Namespace, log=print) -> int:
     stages: list[tuple[str, object]] = []
     rows: list = []
     overhead: dict = {}
+    layer: list = []
     if run_micro:
         def pairs(name: str, n: int, dtype: torch.dtype):
             configs = {} if apps_plan is None else {"arap": apps_plan.arap, "elasticity": apps_plan.elasticity}
@@ -134,6 +135,9 @@ def bench(args: argparse.Namespace, log=print) -> int:
             stages.append((title, lambda run=run: rows.extend(run())))
         stages.append(("single-matrix call overhead", lambda: overhead.update(
             micro.single_matrix_overhead(plan.overhead_run_time))))
+        stages.append((f"rotation layer (nn.RotationFit forward + backward), batch "
+                       f"{', '.join(f'{b:,}' for b in plan.layer_batches)}",
+                       lambda: layer.extend(micro.rotation_layer(plan.layer_batches, plan.overhead_run_time))))
     apps_results: dict = {}
     apps_rows: list = []
     if run_apps:
@@ -162,11 +166,12 @@ def bench(args: argparse.Namespace, log=print) -> int:
         log("\nSingle-matrix call (us):")
         for name, us in overhead.items():
             log(f"  {name:58s} {us:7.2f}")
+        log("\nRotation layer, forward + backward (us):\n" + micro.format_layer_table(layer))
         for part in ("scaling", "methods"):
             log(f"\n## {part}\n")
             log(micro.format_table([r for r in rows if r.part == part]))
         if output:
-            written += micro.write_results(rows, overhead, output)
+            written += micro.write_results(rows, overhead, output, layer)
     if run_apps:
         from torchrot.bench import apps
 

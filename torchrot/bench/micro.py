@@ -32,7 +32,7 @@ import torchrot
 from torchrot import baselines
 from torchrot import methods as paper
 from torchrot.reference import rotation_svd
-from torchrot.testing import cpu_kernel, make_warm_start
+from torchrot.testing import cpu_kernel, make_matrices, make_warm_start, soa_view
 
 Tensor = torch.Tensor
 ISAS = ("scalar", "default", "avx2", "avx512")
@@ -75,6 +75,9 @@ class Method:
     # Not re-run with more threads (a cost made of thousands of tiny-tensor steps only adds
     # thread-pool overhead there).
     max_threads: int | None = None
+    # "aos": the data set's (N, 3, 3) tensors; "soa": the same values as structure-of-arrays
+    # views (matrix index fastest, soa_view), made once per data set outside the timing
+    layout: str = "aos"
 
 
 @dataclass
@@ -92,6 +95,7 @@ class Row:
     key: str = ""
     mode: str | None = None
     variant: str | None = None
+    layout: str = "aos"
     max_error: float | None = None  # max |R - R*|_F against float64 SVD
     median_error: float | None = None
     share_above_1e3: float | None = None  # share of matrices with |R - R*|_F > 1e-3 (or non-finite)
@@ -197,6 +201,12 @@ def all_methods(isas: list[str] | None = None, variants: tuple[str, ...] = VARIA
     else:
         for isa in isas:
             methods += _torchrot_methods(isa, f" [{isa}]", variants)
+    # The paper's own layout: matrix index fastest (a solver's (3, 3, N) covariances).
+    methods.append(Method("torchrot 1-step warm, conservative, SoA views",
+                          lambda M, init, out: torchrot.fit_rotation(M, init, max_iter=1, out=out), "torchrot",
+                          "torchrot", "one_step", "conservative", warm_only=True, layout="soa"))
+    methods.append(Method("torchrot converged warm, SoA views", lambda M, init, out: torchrot.fit_rotation(
+        M, init, out=out), "torchrot", "torchrot", "converged_warm", "conservative", layout="soa"))
     if first_touch:
         # Without out=: every call allocates a new output and pays its first-touch page faults.
         methods.append(Method("torchrot 1-step warm, conservative, new output",
@@ -255,6 +265,7 @@ def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, method
     n, dtype = M.shape[0], M.dtype
     warm = data in WARM_DATA if warm is None else warm
     out = torch.empty_like(M)
+    layouts = {"aos": (M, init, out)}
     k = min(n, ACCURACY_SAMPLE)
     M64 = M[:k].double()
     R_star = rotation_svd(M64)
@@ -267,7 +278,9 @@ def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, method
                 continue
             # slow methods run on the first sample_n matrices (their ns/matrix is flat in N)
             used = n if method.sample_n is None else min(n, method.sample_n)
-            M_used, init_used, out_used = M[:used], init[:used], out[:used]
+            if method.layout not in layouts:
+                layouts[method.layout] = tuple(soa_view(x) for x in (M, init, out))
+            M_used, init_used, out_used = (x[:used] for x in layouts[method.layout])
             k_used = min(k, used)
             with forced_isa(method.isa):
                 # methods with a sample_n (the comparison methods, up to seconds per call): slow_repeats runs
@@ -295,7 +308,7 @@ def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, method
             row = Row(part, data, method.name, str(dtype).replace("torch.", ""), used, threads,
                       ns_per_matrix=statistics.median(runs) / used * 1e9, runs_ns=[r / used * 1e9 for r in runs],
                       isa=method.isa, group=method.group, key=method.key, mode=method.mode,
-                      variant=method.variant)
+                      variant=method.variant, layout=method.layout)
             if method.group != "floor":
                 for key, value in _accuracy(R[:k_used], M64[:k_used], R_star[:k_used]).items():
                     setattr(row, key, value)
@@ -334,6 +347,7 @@ class Plan:
     # the paper's comparison methods run on at most this many matrices per data set (None: methods_n);
     # their ns/matrix is flat in N from ~1e4 on (0.5-5 us per matrix of batched tensor ops)
     comparison_n: int | None = 500
+    layer_batches: tuple[int, ...] = (64, 10_000)  # rotation_layer: nn.RotationFit forward + backward
     slow_repeats: int | None = 1  # timed runs of the comparison methods (up to seconds per call; None: repeats)
     overhead_run_time: float = 0.05  # min_run_time of the single-matrix call timings
 
@@ -343,7 +357,7 @@ class Plan:
 QUICK = Plan()
 FULL = Plan(scaling_n=(1_000, 10_000, 100_000, 1_000_000, 10_000_000), methods_n=1_000_000,
             dtypes=(torch.float32, torch.float64), all_isas=True, variants=VARIANTS, repeats=5, min_run_time=0.2,
-            comparison_n=COMPARISON_N, slow_repeats=None, overhead_run_time=0.5)
+            comparison_n=COMPARISON_N, slow_repeats=None, overhead_run_time=0.5, layer_batches=(64, 100_000))
 
 
 def make_pairs(data: str, n: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
@@ -411,6 +425,39 @@ def single_matrix_overhead(min_run_time: float = 0.5) -> dict[str, float]:
     return {name: statistics.median(_median_seconds(fn, 3, min_run_time)) * 1e6 for name, fn in calls.items()}
 
 
+def rotation_layer(batches: tuple[int, ...], min_run_time: float = 0.05, repeats: int = 3) -> list[dict]:
+    """A training step's rotation layer: microseconds per forward + backward of
+    ``torchrot.nn.RotationFit`` on a float32 ``(B, 3, 3)`` batch (gaussian
+    network outputs), beside the same through SVD autograd (rotation_svd) and a
+    ``copy_`` of the batch, timed in the same run; 1 thread."""
+    layer = torchrot.nn.RotationFit()
+    results = []
+    for batch in batches:
+        M = make_matrices("gaussian", batch, 0, torch.float32).requires_grad_()
+        G = make_matrices("gaussian", batch, 1, torch.float32)
+        buffer = torch.empty_like(M)
+
+        def step(fit):
+            M.grad = None
+            (fit(M) * G).sum().backward()
+
+        calls = {"copy_": lambda: buffer.copy_(M.detach()), "svd": lambda: step(rotation_svd),
+                 "torchrot": lambda: step(layer)}
+        us = {name: statistics.median(_median_seconds(fn, repeats, min_run_time)) * 1e6 for name, fn in calls.items()}
+        results.append({"batch": batch, "copy_us": us["copy_"], "svd_autograd_us": us["svd"],
+                        "torchrot_us": us["torchrot"], "torchrot_vs_svd": us["torchrot"] / us["svd"]})
+    return results
+
+
+def format_layer_table(results: list[dict]) -> str:
+    lines = ["| batch | nn.RotationFit fwd+bwd (us) | SVD autograd fwd+bwd (us) | torchrot / SVD | copy_ (us) |",
+             "|---|---|---|---|---|"]
+    for r in results:
+        lines.append(f"| {r['batch']:,} | {r['torchrot_us']:.1f} | {r['svd_autograd_us']:.1f} | "
+                     f"{r['torchrot_vs_svd']:.3f}x ({1 / r['torchrot_vs_svd']:.1f}x faster) | {r['copy_us']:.2f} |")
+    return "\n".join(lines)
+
+
 def machine_info() -> dict:
     return {
         "torch": torch.__version__,
@@ -474,18 +521,20 @@ def plot_scaling(rows: list[Row], path: str) -> None:
     plt.close(fig)
 
 
-def write_results(rows: list[Row], overhead: dict[str, float], folder: str) -> list[str]:
+def write_results(rows: list[Row], overhead: dict[str, float], folder: str, layer: list[dict] | None = None) -> list[str]:
     """bench.json, bench.md and bench_scaling.png in ``folder``; returns the paths."""
     os.makedirs(folder, exist_ok=True)
     paths = [os.path.join(folder, name) for name in ("bench.json", "bench.md", "bench_scaling.png")]
     with open(paths[0], "w") as f:
-        json.dump({"machine": machine_info(), "single_matrix_us": overhead, "rows": [asdict(r) for r in rows]},
-                  f, indent=1)
+        json.dump({"machine": machine_info(), "single_matrix_us": overhead, "rotation_layer": layer or [],
+                   "rows": [asdict(r) for r in rows]}, f, indent=1)
     with open(paths[1], "w") as f:
         f.write(f"# torchrot benchmark\n\nMachine: {machine_info()}\n\n")
         f.write("## Single-matrix call (microseconds)\n\n")
         for name, us in overhead.items():
             f.write(f"- {name}: {us:.2f}\n")
+        if layer:
+            f.write("\n## Rotation layer: forward + backward, float32, 1 thread\n\n" + format_layer_table(layer) + "\n")
         for part in ("scaling", "methods"):
             part_rows = [r for r in rows if r.part == part]
             if part_rows:
