@@ -388,6 +388,10 @@ TORCH_LIBRARY(torchrot, m) {
   // condition (R^T M symmetric) with Tikhonov damping gradient_eps; the same
   // map gives the forward-mode tangent dR from dM.
   m.def("fit_rotation_backward(Tensor grad, Tensor R, Tensor M, " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor");
+  // fit_rotation with its reverse-mode derivative recorded in C++
+  // (csrc/training.cpp): torchrot.fit_rotation's plain training call.
+  m.def(
+      "_fit_rotation_autograd(Tensor M, Tensor? init, int? max_iter, str variant, float gradient_eps) -> Tensor");
   // Which CPU kernel object runs in the calling thread: "scalar", "default",
   // "avx2" or "avx512".
   m.def("cpu_kernel() -> str", [] { return cpu_kernel_name(); });

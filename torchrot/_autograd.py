@@ -175,13 +175,6 @@ _lib = torch.library.Library("torchrot", "IMPL")
 _FIT_OP = torch.ops.torchrot.fit_rotation.default
 _BACKWARD_OP = torch.ops.torchrot.fit_rotation_backward.default
 
-#: FitRotationFunction.apply without the per-call signature binding of
-#: autograd.Function.apply (the arguments are always complete), which costs
-#: several times a small fit. torchrot.fit_rotation applies it directly for
-#: plain reverse-mode calls (no torch.func, forward AD, autocast or tracing).
-apply_fit_rotation = super(torch.autograd.Function, FitRotationFunction).apply
-
-
 def _has_tangent(args) -> bool:
     """Whether a tensor argument carries a forward-mode tangent. A dual level
     opened by forward_ad.dual_level sets forward_ad._current_level, but one

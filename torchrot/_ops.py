@@ -11,7 +11,7 @@ from typing import NamedTuple
 import torch
 from torch.autograd import forward_ad
 
-from torchrot._autograd import apply_fit_rotation  # (importing it registers the operators' derivatives)
+import torchrot._autograd  # noqa: F401  (registers the operators' derivatives)
 from torchrot._checks import (
     check_all,
     check_backward,
@@ -123,9 +123,10 @@ def fit_rotation(
         torch.ops.torchrot.fit_rotation_out(M, init, max_iter, variant, out)
         return out
     if differentiable and _plain_reverse_mode(M):
-        # The common training call: what the operator's Autograd kernel
-        # would do, without the Python kernel call around it.
-        return apply_fit_rotation(M, init, max_iter, variant, gradient_eps)
+        # The common training call: the operator's reverse-mode derivative,
+        # recorded in C++ (csrc/training.cpp) instead of by the Python
+        # Autograd kernel, which costs several times a small fit.
+        return torch.ops.torchrot._fit_rotation_autograd.default(M, init, max_iter, variant, gradient_eps)
     if differentiable or torch.compiler.is_compiling():
         # The operator's Autograd kernel (torchrot/_autograd.py) records the
         # derivatives in every mode (backward, forward AD, each torch.func

@@ -295,6 +295,10 @@ def _masked_update(mask, fn, R, operands):
 _LANE_KEYS = ("running", "fallback", "switched", "iterations", "attempt", "escapes", "pending")
 
 
+#: Compiled, loops of at most this many steps are unrolled (the one-step warm start).
+UNROLL_MAX_STEPS = 2
+
+
 def _repeat(step, st, steps):
     """Up to ``steps`` applications of ``step`` to the lane state ``st``
     (a dict: ``A``, ``R`` and _LANE_KEYS), stopping once no lane runs."""
@@ -304,6 +308,10 @@ def _repeat(step, st, steps):
         for _ in range(steps):
             if not _any(st["running"]):
                 break
+            st = step(st)
+        return st
+    if steps <= UNROLL_MAX_STEPS:  # a short fixed loop fuses into one kernel (finished lanes' steps are no-ops)
+        for _ in range(steps):
             st = step(st)
         return st
     from torch._higher_order_ops.while_loop import while_loop
