@@ -268,9 +268,24 @@ def test_benchmark_times_methods_on_recorded_data(tmp_path):
         assert r.speedup_vs_svd == pytest.approx(by_key["svd", None].ns_per_matrix / r.ns_per_matrix)
         assert r.time_vs_copy == pytest.approx(r.ns_per_matrix / by_key["copy", None].ns_per_matrix)
         assert r.n == 400 and r.data == "arap" and r.dtype == "float32"
+    # the structure-of-arrays rows fit the same values as their contiguous counterparts
+    soa = {r.mode: r for r in rows if r.layout == "soa"}
+    assert set(soa) == {"one_step", "converged_warm"}
+    for r in rows:
+        if r.layout == "aos" and r.mode in soa and r.variant == "conservative" and r.isa is None:
+            assert soa[r.mode].max_error == pytest.approx(r.max_error, rel=1e-12), r.method
     # the same data without warm=True: the warm-start-only methods are left out
     cold = micro.run_case("apps", "arap", M[:50], init[:50], 1, methods, 1, 0.001, log=lambda s: None)
     assert not any(r.mode == "one_step" for r in cold)
+
+
+def test_rotation_layer_rows():
+    """The rotation-layer stage: one row per batch, every time from the same run."""
+    rows = micro.rotation_layer((8, 40), min_run_time=0.001, repeats=1)
+    assert [r["batch"] for r in rows] == [8, 40]
+    for r in rows:
+        assert r["torchrot_vs_svd"] == pytest.approx(r["torchrot_us"] / r["svd_autograd_us"])
+    assert "| 40 |" in micro.format_layer_table(rows)
 
 
 def test_report_tables_select_rows_by_field():

@@ -1,0 +1,123 @@
+"""The speed targets of the fast-path work, measured in one process.
+
+float32, 1 thread. Part 1, on N matrices recorded from the ARAP solver (the
+paper-scale recording of ``python -m torchrot bench --full``: 57k-vertex
+capsule, ~1e6 matrices, cached in ~/.cache/torchrot) with their previous
+rotations as warm starts, timed interleaved, median of ``--rounds`` rounds:
+``copy_`` of M into a preallocated tensor, the one-step update on
+structure-of-arrays views (the paper's layout, ``torchrot.testing.soa_view``),
+on contiguous (N, 3, 3) tensors (``out=`` and in place) and the converged fit
+from the warm start (exact: its failures against float64 SVD are counted).
+Part 2: the converged cold fit on uniform [0, 1] matrices (N = 1e5) against
+``torch.linalg.svd`` special Procrustes. Part 3: ``torchrot.nn.RotationFit``
+forward + backward against SVD autograd (``torchrot.bench.micro.rotation_layer``).
+
+    python benchmarks/speed_targets.py [--n 1000000] [--rounds 9] [--layer-batches 64 100000]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+
+import torch
+
+import torchrot
+from torchrot.bench import apps, data, micro
+from torchrot.testing import make_matrices, soa_view
+
+FAILURE = micro.FAILURE_THRESHOLD
+
+
+def _seconds(fn, min_time: float) -> float:
+    fn()
+    times, start = [], time.perf_counter()
+    while time.perf_counter() - start < min_time or len(times) < 3:
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def _interleaved(methods: dict, rounds: int, min_time: float) -> dict[str, float]:
+    runs: dict[str, list[float]] = {name: [] for name in methods}
+    for _ in range(rounds):
+        for name, fn in methods.items():
+            runs[name].append(_seconds(fn, min_time))
+    return {name: statistics.median(r) for name, r in runs.items()}
+
+
+def _failures(R: torch.Tensor, M: torch.Tensor) -> int:
+    R_star = torchrot.rotation_svd(M.double())
+    bad = ~((R.double() - R_star).norm(dim=(-2, -1)) <= FAILURE)
+    return int(bad.sum())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--n", type=int, default=1_000_000)
+    parser.add_argument("--rounds", type=int, default=9)
+    parser.add_argument("--min-time", type=float, default=0.1)
+    parser.add_argument("--layer-batches", type=int, nargs="+", default=[64, 100_000])
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    print(f"machine: {micro.machine_info()}; load average {os.getloadavg()}")
+
+    M, init = data.pairs("arap", args.n, torch.float32, configs={"arap": apps.FULL.arap})
+    n = M.shape[0]
+    M_soa, init_soa = soa_view(M), soa_view(init)
+    buf, out, out_soa, R = torch.empty_like(M), torch.empty_like(M), soa_view(torch.empty_like(M)), init.clone()
+    methods = {
+        "copy_ of M (memory floor)": lambda: buf.copy_(M),
+        "one-step, SoA views, out=": lambda: torchrot.fit_rotation(M_soa, init_soa, max_iter=1, out=out_soa),
+        "one-step, contiguous, out=": lambda: torchrot.fit_rotation(M, init, max_iter=1, out=out),
+        "one-step, contiguous, in place (out=init)": lambda: torchrot.fit_rotation(M, R, max_iter=1, out=R),
+        "converged from the warm start, contiguous": lambda: torchrot.fit_rotation(M, init, out=out),
+        "converged from the warm start, SoA views": lambda: torchrot.fit_rotation(M_soa, init_soa, out=out_soa),
+    }
+    ns = {k: v / n * 1e9 for k, v in _interleaved(methods, args.rounds, args.min_time).items()}
+    copy = ns["copy_ of M (memory floor)"]
+    print(f"\nrecorded ARAP data (57k-vertex capsule), N = {n:,}, float32, 1 thread, median of {args.rounds} rounds")
+    print(f"{'method':44s} {'ns/matrix':>10s} {'x copy_':>8s}")
+    for name, v in ns.items():
+        print(f"{name:44s} {v:10.2f} {v / copy:8.2f}")
+    converged_failures = _failures(torchrot.fit_rotation(M, init), M)
+    one_step_failures = _failures(torchrot.fit_rotation(M, init, max_iter=1), M)
+    print(f"failures (|R - R*|_F > {FAILURE:g}): one-step {one_step_failures:,} ({one_step_failures / n:.2%}), "
+          f"converged {converged_failures}")
+
+    U = make_matrices("uniform", 100_000, 0, torch.float32)
+    cold = _interleaved({"svd": lambda: torchrot.rotation_svd(U), "torchrot": lambda: torchrot.fit_rotation(U)},
+                        max(3, args.rounds // 3), args.min_time)
+    print(f"\nuniform [0, 1], N = 100,000, converged cold: torchrot {cold['torchrot'] / 1e5 * 1e9:.1f} ns/matrix, "
+          f"torch.linalg.svd {cold['svd'] / 1e5 * 1e9:.1f}: {cold['svd'] / cold['torchrot']:.1f}x")
+
+    layer = micro.rotation_layer(tuple(args.layer_batches), min_run_time=args.min_time)
+    print("\nnn.RotationFit forward + backward (us), float32, 1 thread:\n" + micro.format_layer_table(layer))
+
+    rows = [
+        ("one-step on SoA views <= 1.0x copy_", ns["one-step, SoA views, out="] / copy, 1.0),
+        ("one-step on contiguous tensors <= 1.3x copy_", ns["one-step, contiguous, out="] / copy, 1.3),
+        ("converged from the warm start, exact, <= 1.5x copy_", ns["converged from the warm start, contiguous"] / copy,
+         1.5),
+    ]
+    print("\n| target | measured | holds |\n|---|---|---|")
+    for name, value, bound in rows:
+        print(f"| {name} | {value:.2f}x | {'yes' if value <= bound else '**no**'} |")
+    print(f"| converged exact: 0 failures | {converged_failures} | {'yes' if converged_failures == 0 else '**no**'} |")
+    speedup = cold["svd"] / cold["torchrot"]
+    print(f"| converged cold, uniform, N = 1e5, >= 100x SVD | {speedup:.1f}x | {'yes' if speedup >= 100 else '**no**'} |")
+    for r in layer:
+        if r["batch"] == 64:
+            print(f"| nn.RotationFit fwd+bwd, batch 64, <= 60 us and <= 0.15x SVD autograd | {r['torchrot_us']:.0f} us, "
+                  f"{r['torchrot_vs_svd']:.3f}x | "
+                  f"{'yes' if r['torchrot_us'] <= 60 and r['torchrot_vs_svd'] <= 0.15 else '**no**'} |")
+        if r["batch"] == 100_000:
+            x = 1 / r["torchrot_vs_svd"]
+            print(f"| nn.RotationFit fwd+bwd, batch 1e5, >= 60x faster than SVD autograd | {x:.1f}x | "
+                  f"{'yes' if x >= 60 else '**no**'} |")
+
+
+if __name__ == "__main__":
+    main()
