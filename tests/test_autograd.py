@@ -381,6 +381,24 @@ def test_opcheck_backward_and_autograd_registration():
     torch.library.opcheck(op.fit_rotation.default, (M.clone().requires_grad_(), None, None, "conservative", 1e-6))
 
 
+def test_training_call_records_in_cpp():
+    """torchrot.fit_rotation's plain reverse-mode call records its derivative
+    in C++ (torchrot::_fit_rotation_autograd): the same gradients, bit for
+    bit, as the operator's Python Autograd kernel; init gets none."""
+    M, init = make_warm_start("warm", 37, seed=5, dtype=torch.float32)
+    G = make_matrices("gaussian", 37, seed=6, dtype=torch.float32)
+    for kwargs in ({}, {"max_iter": 1}):
+        Mc = M.clone().requires_grad_()
+        R = torchrot.fit_rotation(Mc, init, **kwargs)
+        assert "FitRotationAutograd" in R.grad_fn.name()  # the C++ node
+        (g_cpp,) = torch.autograd.grad(R, Mc, G)
+        Mp = M.clone().requires_grad_()
+        (g_py,) = torch.autograd.grad(op.fit_rotation(Mp, init, kwargs.get("max_iter"), "conservative", 1e-6), Mp, G)
+        assert torch.equal(g_cpp, g_py)
+    torch.library.opcheck(op._fit_rotation_autograd.default,
+                          (M.double().requires_grad_(), init.double(), None, "conservative", 1e-6))
+
+
 def test_op_level_autograd_uses_gradient_eps():
     M = torch.diag(torch.tensor([2.0, 1.0, -1.0], dtype=torch.float64)).requires_grad_()
     G = torch.ones(3, 3, dtype=torch.float64)
