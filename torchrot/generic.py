@@ -244,9 +244,13 @@ def _horn_rotation(A):
     float64, the top eigenvector of K by torch.linalg.eigh (an extern kernel:
     the kernel's unrolled Jacobi sweeps would be a pointwise chain too deep
     for inductor to compile)."""
+    device = A[0].device
+    if device.type == "mps":  # no float64 and no eigh there: the (rare) fallback lanes go to the CPU
+        A = [a.cpu() for a in A]
     K = torch.stack(_horn([a.double() for a in A]), -1).reshape(-1, 4, 4)
     q = torch.linalg.eigh(K).eigenvectors[..., 3]  # eigenvalues ascending: the largest is last
-    return [r.to(A[0].dtype) for r in _quaternion_rotation(q[:, 0], q[:, 1], q[:, 2], q[:, 3])]
+    R = _quaternion_rotation(q[:, 0], q[:, 1], q[:, 2], q[:, 3])
+    return [r.to(device=device, dtype=A[0].dtype) for r in R]
 
 
 # ---------------------------------------------------------------------------
