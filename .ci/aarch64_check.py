@@ -11,7 +11,8 @@
     the contiguous full-batch result; NaN/Inf and zero matrices included;
   * backward: torch.ops.torchrot.fit_rotation_backward against
     fit_rotation_backward_reference, undamped and damped (relative error
-    bounded as in tests/test_autograd.py), plus tails and gradient layouts;
+    bounded as in tests/test_autograd.py), plus tails and gradient layouts,
+    and autograd through torchrot.fit_rotation (recorded in C++) equal to it;
   * every kernel object this build has (the hardware's and each below it)
     gives bit-identical results; the hardware kernel is "default" off x86-64,
     and requests for avx2/avx512 are capped to it there.
@@ -162,6 +163,11 @@ def backward(kernel: str, tag: str, M_all, G_all, special) -> None:
         check(f"{key} tails 0..{TAILS - 1}", not bad, f"batch sizes {bad} differ")
         for name, Gl in layouts(G).items():
             check(f"{key} {name} gradient", same_bits(torch.ops.torchrot.fit_rotation_backward(Gl, R, M, eps), got))
+    # autograd through torchrot.fit_rotation (the training call, recorded in C++) is that operator
+    Mg = M.clone().requires_grad_()
+    (g_train,) = torch.autograd.grad(torchrot.fit_rotation(Mg), Mg, G)
+    check(f"{tag}/{kernel}/backward: autograd of fit_rotation is the operator",
+          same_bits(g_train, results[f"{tag}/{kernel}/backward/{GRADIENT_EPS:g}"]))
     # NaN/Inf inputs: same non-finite pattern as the reference
     Ms, Gs = M_all[special], G_all[special]
     Rs = torchrot.fit_rotation(Ms)
