@@ -200,3 +200,24 @@ def test_escapes_and_fallbacks_match_kernel():
     assert (it[cayley] > generic.FULL_STEPS).sum() > 100  # saddle escapes: restarted runs
     finite = torch.isfinite(M).all(-1).all(-1)
     _assert_criteria(R[finite], M[finite], torch.float64, "escapes and fallbacks")
+
+
+def test_failed_compile_falls_back_to_eager(monkeypatch):
+    """Where torch.compile fails (e.g. no Triton for the device), the device
+    runs the algorithm eagerly from then on, after one RuntimeWarning."""
+    def broken_compile(fn, **kwargs):
+        def compiled(*args):
+            raise RuntimeError("no backend for this device")
+        return compiled
+
+    monkeypatch.setattr(generic, "COMPILED_DEVICE_TYPES", frozenset({"cpu"}))
+    monkeypatch.setattr(generic, "_compiled_cores", {})
+    monkeypatch.setattr(generic.torch, "compile", broken_compile)
+    M = make_matrices("gaussian", 64, 44, torch.float64)
+    with pytest.warns(RuntimeWarning, match="torch.compile failed on cpu tensors .*runs eagerly"):
+        R = torchrot.fit_rotation_reference(M)
+    assert torch.equal(R, generic._fit_core(M, None, None, "conservative")[0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        assert torch.equal(torchrot.fit_rotation_reference(M), R)
+    assert generic._compiled_cores["cpu"] is generic._fit_core
