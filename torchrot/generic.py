@@ -514,6 +514,8 @@ def _components(X, n):
 
 
 def _normalized(M):
+    """M / max|M| entrywise, subnormal-scaled matrices lifted by 2^(digits+1)
+    first (as the kernel): (A, max_abs, zero, lift, inv) with A = (M lift) inv."""
     max_abs = M[0].abs()
     for x in M[1:]:
         max_abs = torch.maximum(max_abs, x.abs())  # NaN propagates
@@ -522,7 +524,7 @@ def _normalized(M):
     lift = torch.where(max_abs < finfo.tiny, torch.full_like(max_abs, float(2**digits)), torch.ones_like(max_abs))
     zero = max_abs == 0
     inv = torch.where(zero, 0.0, 1 / torch.where(zero, 1.0, max_abs * lift))
-    return [(x * lift) * inv for x in M], max_abs, zero
+    return [(x * lift) * inv for x in M], max_abs, zero, lift, inv
 
 
 def _warm_start_components(init, compute):
@@ -542,19 +544,20 @@ def _compute_dtype(dtype):
     return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
 
 
-def _fit_core(M, init, max_iter, variant):
+def _fit_core(M, init, max_iter, variant, warm=None):
     """(R, iterations, status) for M: the whole algorithm as tensor operations
-    (no host read when compiled; see _repeat)."""
+    (no host read when compiled; see _repeat). ``warm``: init's
+    _warm_start_components if the caller has them already."""
     compute = _compute_dtype(M.dtype)
     shape = M.shape
     batch = shape[:-2]
     n = math.prod(batch)
     eps = torch.finfo(compute).eps
-    A, max_abs, zero = _normalized(_components(M.to(compute), n))
+    A, max_abs, zero, _, _ = _normalized(_components(M.to(compute), n))
     finite = torch.isfinite(max_abs)
     bad_init = torch.zeros_like(finite)
     if init is not None:
-        I, G, init_finite, init_bad, dev2 = _warm_start_components(init, compute)
+        I, G, init_finite, init_bad, dev2 = warm if warm is not None else _warm_start_components(init, compute)
         ex = lambda t: t.expand(batch).reshape(n)
         init_finite, init_bad, dev2 = ex(init_finite), ex(init_bad), ex(dev2)
         R, G = [ex(x) for x in I], [ex(g) for g in G]
@@ -599,10 +602,12 @@ def _core_for(device: torch.device):
     return _compiled_cores[device.type]
 
 
-def _run_core(M, init, max_iter, variant):
+def _run_core(M, init, max_iter, variant, warm=None):
+    """_fit_core, compiled on COMPILED_DEVICE_TYPES; ``warm`` serves the eager
+    core only (the compiled graph computes its own from init)."""
     core = _core_for(M.device)
     if core is _fit_core:
-        return core(M, init, max_iter, variant)
+        return core(M, init, max_iter, variant, warm)
     try:
         return core(M, init, max_iter, variant)
     except Exception as error:  # e.g. no Triton for this device: run eagerly from now on
@@ -611,7 +616,7 @@ def _run_core(M, init, max_iter, variant):
         warnings.warn(f"torchrot: torch.compile failed on {M.device.type} tensors ({type(error).__name__}: "
                       f"{error}); the device-generic path runs eagerly", RuntimeWarning, stacklevel=3)
         _compiled_cores[M.device.type] = _fit_core
-        return _fit_core(M, init, max_iter, variant)
+        return _fit_core(M, init, max_iter, variant, warm)
 
 
 def fit_rotation_generic(M, init, max_iter, variant, return_info, bad_init_error):
@@ -619,11 +624,13 @@ def fit_rotation_generic(M, init, max_iter, variant, return_info, bad_init_error
     ``bad_init_error(count, total)`` for a finite warm start that is not a
     rotation (eager, before anything else; not on ``meta`` tensors nor while
     traced, where such lanes come back NaN with status STATUS_BAD_INIT)."""
+    warm = None
     if init is not None and M.device.type != "meta" and not _compiling():
-        init_bad = _warm_start_components(init, _compute_dtype(M.dtype))[3]
+        warm = _warm_start_components(init, _compute_dtype(M.dtype))
+        init_bad = warm[3]
         if bool(init_bad.any()):
             raise bad_init_error(int(init_bad.sum()), init_bad.numel())  # counted in init's own shape
-    R, iterations, status = _run_core(M, init, max_iter, variant)
+    R, iterations, status = _run_core(M, init, max_iter, variant, warm)
     return (R, iterations, status) if return_info else R
 
 
@@ -632,9 +639,7 @@ def rotation_tangent(X, R, M, damping):
     R [u]x with u = Re (K + i lambda I)^-1 g (no K^2: float32 keeps its digits)."""
     dtype = R[0].dtype
     finfo = torch.finfo(dtype)
-    A, max_abs, zero = _normalized(M)
-    lift = torch.where(max_abs < finfo.tiny, torch.full_like(max_abs, float(2 ** (round(-math.log2(finfo.eps)) + 1))), torch.ones_like(max_abs))
-    inv_max = torch.where(zero, 0.0, 1 / torch.where(zero, 1.0, max_abs * lift))
+    A, max_abs, zero, lift, inv_max = _normalized(M)
     frob2 = sum(a * a for a in A)
     frob = torch.where(zero, 1.0, torch.sqrt(frob2))
     S = _tmul(R, A)
@@ -686,7 +691,7 @@ def rotation_tangent(X, R, M, damping):
 def fit_rotation_backward_generic(grad, R, M, gradient_eps):
     """The body of fit_rotation_backward_reference (arguments already checked)."""
     out_dtype = R.dtype
-    compute = torch.float32 if R.dtype in (torch.float16, torch.bfloat16) else R.dtype
+    compute = _compute_dtype(R.dtype)
     shape = R.shape
     n = math.prod(shape[:-2])
     Gc = _components(grad.to(compute), n)
