@@ -17,32 +17,23 @@ import torchrot
 from torchrot import generic
 from torchrot.reference import fit_rotation_backward_reference
 from torchrot.testing import (
-    CRITERIA,
     DISTRIBUTIONS,
     WELL_CONDITIONED,
     edge_case_matrices,
     make_matrices,
     random_rotations,
-    rotation_errors,
 )
 
 DTYPES = [torch.float32, torch.float64]
 N = 1500
 
 
-def _assert_criteria(R, M, dtype, what):
-    errors = rotation_errors(R, M)
-    for key, bound in CRITERIA[dtype].items():
-        worst = errors[key].max().item()
-        assert worst <= bound, f"{what}: {key} {worst:.3g} > {bound:.3g}"
-
-
 @pytest.mark.parametrize("dtype", DTYPES, ids=str)
 @pytest.mark.parametrize("name", list(DISTRIBUTIONS) + ["edge_cases"])
-def test_criteria_every_distribution(name, dtype):
+def test_criteria_every_distribution(name, dtype, assert_meets_criteria):
     M = edge_case_matrices(dtype) if name == "edge_cases" else make_matrices(name, N, 11, dtype)
     R, it, status = torchrot.fit_rotation_reference(M, return_info=True)
-    _assert_criteria(R, M, dtype, name)
+    assert_meets_criteria(R, M, dtype, name)
     _, it_k, status_k = torchrot.fit_rotation_info(M)
     assert (status == 1).sum() <= (status_k == 1).sum() + max(3, N // 100)
 
@@ -164,7 +155,7 @@ def _converged_mix():
     return M, init
 
 
-def test_converged_compiled_as_accelerators_run_it(monkeypatch):
+def test_converged_compiled_as_accelerators_run_it(monkeypatch, assert_meets_criteria):
     """COMPILED_DEVICE_TYPES (CUDA, XPU) run _fit_core compiled with
     fullgraph=True; here on CPU tensors, with a straggler buffer small enough
     to overflow: the same status codes and iteration counts as eager, the
@@ -184,12 +175,12 @@ def test_converged_compiled_as_accelerators_run_it(monkeypatch):
     assert torch.equal(st, st_e) and torch.equal(it[cayley], it_e[cayley])
     assert (st == 1).sum() > 0 and (it > generic.FULL_STEPS).sum() > generic.straggler_capacity(len(M))
     finite = torch.isfinite(M).all(-1).all(-1)
-    _assert_criteria(R[finite], M[finite], torch.float64, "compiled converged")
+    assert_meets_criteria(R[finite], M[finite], torch.float64, "compiled converged")
     assert torch.isnan(R[~finite]).all()
     torch._dynamo.reset()
 
 
-def test_escapes_and_fallbacks_match_kernel():
+def test_escapes_and_fallbacks_match_kernel(assert_meets_criteria):
     """The same mix eagerly: saddle escapes (deferred past the whole-batch
     steps) and fallbacks give the kernel's iterations and status codes."""
     M, init = _converged_mix()
@@ -199,7 +190,7 @@ def test_escapes_and_fallbacks_match_kernel():
     assert torch.equal(st, st_k) and torch.equal(it[cayley], it_k[cayley])
     assert (it[cayley] > generic.FULL_STEPS).sum() > 100  # saddle escapes: restarted runs
     finite = torch.isfinite(M).all(-1).all(-1)
-    _assert_criteria(R[finite], M[finite], torch.float64, "escapes and fallbacks")
+    assert_meets_criteria(R[finite], M[finite], torch.float64, "escapes and fallbacks")
 
 
 def test_failed_compile_falls_back_to_eager(monkeypatch):
