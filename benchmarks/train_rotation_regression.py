@@ -35,12 +35,11 @@ import time
 from dataclasses import asdict, dataclass
 
 import torch
-import torch.utils.benchmark as tbench
 from torch import nn
 
 import torchrot
 from torchrot import baselines
-from torchrot.bench.micro import machine_info
+from torchrot.bench.micro import machine_info, median_seconds
 from torchrot.testing import make_matrices, random_rotations
 
 METHODS = ("torchrot", "svd")
@@ -239,8 +238,7 @@ def _layer_calls(M: torch.Tensor):
 
 
 def _median_seconds(fn, repeats: int, min_run_time: float) -> float:
-    timer = tbench.Timer(stmt="fn()", globals={"fn": fn}, num_threads=1)
-    return statistics.median(timer.blocked_autorange(min_run_time=min_run_time).median for _ in range(repeats))
+    return statistics.median(median_seconds(fn, repeats, min_run_time))
 
 
 def _tiled(M: torch.Tensor, n: int) -> torch.Tensor:

@@ -217,7 +217,7 @@ def all_methods(isas: list[str] | None = None, variants: tuple[str, ...] = VARIA
     return methods
 
 
-def _median_seconds(fn: Callable[[], object], repeats: int, min_run_time: float, threads: int = 1) -> list[float]:
+def median_seconds(fn: Callable[[], object], repeats: int, min_run_time: float, threads: int = 1) -> list[float]:
     """Per-call seconds of ``repeats`` independent ``blocked_autorange`` medians
     (the Timer sets the thread count itself: it defaults to 1). A call that
     alone takes ``min_run_time`` or more is timed one call at a time instead
@@ -229,7 +229,10 @@ def _median_seconds(fn: Callable[[], object], repeats: int, min_run_time: float,
     return [timer.blocked_autorange(min_run_time=min_run_time).median for _ in range(repeats)]
 
 
-def _accuracy(R: Tensor, M64: Tensor, R_star: Tensor) -> dict:
+def accuracy(R: Tensor, M64: Tensor, R_star: Tensor) -> dict:
+    """max/median |R - R*|_F, the share and number of failures (> FAILURE_THRESHOLD
+    or non-finite) and the largest objective shortfall relative to |M|_F, against
+    R* = rotation_svd(M64) (float64)."""
     # A non-finite result counts as infinitely wrong (a NaN would drop out of max and share).
     dist = torch.nan_to_num((R.double() - R_star).norm(dim=(-2, -1)), nan=math.inf)
     norm = M64.norm(dim=(-2, -1)).clamp_min(torch.finfo(torch.float64).tiny)
@@ -293,7 +296,7 @@ def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, method
                     runs = [timer.timeit(1).median]
                     R, steps = result[-1]
                 else:
-                    runs = _median_seconds(lambda: method.run(M_used, init_used, out_used), method_repeats,
+                    runs = median_seconds(lambda: method.run(M_used, init_used, out_used), method_repeats,
                                            min_run_time, threads)
                     if method.iterations is not None and k_used == used:
                         R, steps = method.iterations(M_used, init_used)
@@ -310,7 +313,7 @@ def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, method
                       isa=method.isa, group=method.group, key=method.key, mode=method.mode,
                       variant=method.variant, layout=method.layout)
             if method.group != "floor":
-                for key, value in _accuracy(R[:k_used], M64[:k_used], R_star[:k_used]).items():
+                for key, value in accuracy(R[:k_used], M64[:k_used], R_star[:k_used]).items():
                     setattr(row, key, value)
             if info is not None:
                 row.mean_iterations = info.iterations.double().mean().item()
@@ -422,7 +425,7 @@ def single_matrix_overhead(min_run_time: float = 0.5) -> dict[str, float]:
         "torchrot.fit_rotation(M, R, max_iter=1, out=R)": lambda: torchrot.fit_rotation(M, R, max_iter=1, out=R),
         "torch.linalg.svd special Procrustes": lambda: rotation_svd(M),
     }
-    return {name: statistics.median(_median_seconds(fn, 3, min_run_time)) * 1e6 for name, fn in calls.items()}
+    return {name: statistics.median(median_seconds(fn, 3, min_run_time)) * 1e6 for name, fn in calls.items()}
 
 
 def rotation_layer(batches: tuple[int, ...], min_run_time: float = 0.05, repeats: int = 3) -> list[dict]:
@@ -443,7 +446,7 @@ def rotation_layer(batches: tuple[int, ...], min_run_time: float = 0.05, repeats
 
         calls = {"copy_": lambda: buffer.copy_(M.detach()), "svd": lambda: step(rotation_svd),
                  "torchrot": lambda: step(layer)}
-        us = {name: statistics.median(_median_seconds(fn, repeats, min_run_time)) * 1e6 for name, fn in calls.items()}
+        us = {name: statistics.median(median_seconds(fn, repeats, min_run_time)) * 1e6 for name, fn in calls.items()}
         results.append({"batch": batch, "copy_us": us["copy_"], "svd_autograd_us": us["svd"],
                         "torchrot_us": us["torchrot"], "torchrot_vs_svd": us["torchrot"] / us["svd"]})
     return results
