@@ -173,7 +173,7 @@ def test_converged_compiled_as_accelerators_run_it(monkeypatch, assert_meets_cri
     R_e, it_e, st_e = generic._fit_core(M, init, None, "conservative")
     cayley = st_e == 0  # fallback lanes' failed runs are chaotic (degenerate maxima): their counts may differ
     assert torch.equal(st, st_e) and torch.equal(it[cayley], it_e[cayley])
-    assert (st == 1).sum() > 0 and (it > generic.FULL_STEPS).sum() > generic.straggler_capacity(len(M))
+    assert (st == 1).sum() > 0 and (it > generic.full_steps(M.dtype)).sum() > generic.straggler_capacity(len(M))
     finite = torch.isfinite(M).all(-1).all(-1)
     assert_meets_criteria(R[finite], M[finite], torch.float64, "compiled converged")
     assert torch.isnan(R[~finite]).all()
@@ -188,7 +188,7 @@ def test_escapes_and_fallbacks_match_kernel(assert_meets_criteria):
     R_k, it_k, st_k = torchrot.fit_rotation_info(M, init)
     cayley = st_k == 0  # fallback lanes' failed runs are chaotic (degenerate maxima): their counts may differ
     assert torch.equal(st, st_k) and torch.equal(it[cayley], it_k[cayley])
-    assert (it[cayley] > generic.FULL_STEPS).sum() > 100  # saddle escapes: restarted runs
+    assert (it[cayley] > generic.full_steps(M.dtype)).sum() > 100  # saddle escapes: restarted runs
     finite = torch.isfinite(M).all(-1).all(-1)
     assert_meets_criteria(R[finite], M[finite], torch.float64, "escapes and fallbacks")
 

@@ -10,7 +10,7 @@ horn_fallback.h) is spelled out entry by entry, with per-matrix masks instead
 of branches, so each lane executes the kernel's state machine: in float64 the
 same iteration counts and status codes (tests/test_generic_path.py).
 
-Schedule (converged mode): the whole batch takes up to ``FULL_STEPS`` masked
+Schedule (converged mode): the whole batch takes up to ``full_steps(dtype)`` masked
 Cayley steps (most matrices converge within them), saddle escapes deferred;
 the matrices still running, pending an escape or needing the fallback are
 then compacted and take the rest of the kernel's step budget (escapes
@@ -48,16 +48,25 @@ from torchrot._limits import (
 STATUS_CAYLEY, STATUS_FALLBACK, STATUS_BAD_INIT, STATUS_NON_FINITE = 0, 1, 2, 3
 
 #: Masked Cayley steps every matrix of the batch takes before the stragglers
-#: are compacted (converged mode; with max_iter=k <= FULL_STEPS_MAX_ITER all k
-#: steps run on the whole batch).
-FULL_STEPS = 6
+#: are compacted (converged mode), by compute dtype (see full_steps); with
+#: max_iter=k <= FULL_STEPS_MAX_ITER all k steps run on the whole batch.
+#: The Newton steps converge quadratically, so float64 needs one more: from
+#: the cold start on uniform [0, 1] matrices (N = 1e5), 2.4% of float32 lanes
+#: still run after 4 steps and 2.3% of float64 lanes after 5. Each whole-batch
+#: step costs the whole batch; a straggler step only the buffer.
+FULL_STEPS = {torch.float32: 4, torch.float64: 5}
 FULL_STEPS_MAX_ITER = 8
 #: Compiled, the straggler buffer holds 1/STRAGGLER_DIVISOR of the batch (at
 #: least STRAGGLER_MIN lanes, at most the batch); more stragglers than that
 #: take the rest of their steps on the whole batch. Uniform [0, 1] matrices,
-#: float32, N = 1e5: 0.35% need more than FULL_STEPS steps from the cold start.
+#: float32, N = 1e5: 2.4% need more than full_steps steps from the cold start.
 STRAGGLER_DIVISOR = 8
 STRAGGLER_MIN = 1024
+
+
+def full_steps(dtype: torch.dtype) -> int:
+    """Whole-batch steps before compaction for compute dtype ``dtype``."""
+    return FULL_STEPS[dtype]
 
 
 def straggler_capacity(n: int) -> int:
@@ -226,17 +235,29 @@ _START_QUATERNIONS = [(2, 0, 0, 0), (0, 2, 0, 0), (0, 0, 2, 0), (0, 0, 0, 2)] + 
 
 
 def _best_start_rotation(A):
-    """The start candidate of largest objective q^T K q (first of equals)."""
+    """The start candidate of largest objective q^T K q (first of equals).
+
+    The winner's quaternion is computed from its index by integer
+    arithmetic, not gathered from a table: a gather keeps inductor's CPU
+    code scalar (the whole start kernel ran one lane at a time)."""
     K = _horn(A)
     values = [K[0], K[5], K[10], K[15]]
     for _, s1, s2, s3 in _START_QUATERNIONS[4:]:
         values.append(0.5 * (s1 * K[1] + s2 * K[2] + s3 * K[3] + (s1 * s2) * K[6] + (s1 * s3) * K[7] + (s2 * s3) * K[11]))
-    best, index = values[0], torch.zeros(values[0].shape, dtype=torch.int64, device=values[0].device)
+    best, index = values[0], torch.zeros(values[0].shape, dtype=_INT, device=values[0].device)
     for i, value in enumerate(values[1:], 1):
         index = torch.where(value > best, i, index)  # strict: the first of equals wins, as in the kernel
         best = torch.maximum(best, value)
-    table = torch.tensor(_START_QUATERNIONS, dtype=A[0].dtype, device=A[0].device).t() * 0.5
-    return _quaternion_rotation(*(table[j].take(index) for j in range(4)))
+    # Candidate i < 4: twice the i-th unit quaternion; i >= 4: (1, +-1, +-1, +-1)
+    # with bit b of i - 4 giving the sign of component b + 1 (_START_QUATERNIONS).
+    dtype = A[0].dtype
+    axis = index < 4
+    signs = index - 4
+    q = [torch.where(axis, (index == 0).to(dtype), 0.5)]
+    for b in range(3):
+        sign = 0.5 - ((signs >> b) & 1).to(dtype)  # +-0.5
+        q.append(torch.where(axis, (index == b + 1).to(dtype), sign))
+    return _quaternion_rotation(*q)
 
 
 def _horn_rotation(A):
@@ -321,13 +342,18 @@ def _repeat(step, st, steps):
     from torch._higher_order_ops.while_loop import while_loop
 
     A = st["A"]
-    pack = lambda s: (*s["R"], *(s[k] for k in _LANE_KEYS))
+    # The lane flags travel through the loop as int32 0/1: inductor's CPU code
+    # loads and stores bool buffers byte by byte (a branch per lane), which
+    # made a step about 4x slower; int32 lanes load and store as vectors.
+    flags = {k for k in _LANE_KEYS if st[k].dtype == torch.bool}
+    pack = lambda s: (*s["R"], *(s[k].to(_INT) if k in flags else s[k] for k in _LANE_KEYS))
 
     def unpack(xs):
-        return {"A": A, "R": list(xs[:9]), **dict(zip(_LANE_KEYS, xs[9:]))}
+        lanes = {k: (x != 0 if k in flags else x) for k, x in zip(_LANE_KEYS, xs[9:])}
+        return {"A": A, "R": list(xs[:9]), **lanes}
 
     def cond(i, *xs):
-        return (i < steps) & xs[9].any()  # xs[9]: running
+        return (i < steps) & (xs[9] != 0).any()  # xs[9]: running
 
     def body(i, *xs):
         out = pack(step(unpack(xs)))
@@ -454,7 +480,7 @@ def _masked_lanes(st, mask):
 def fit_soa(A, R, running, variant, max_iter, eps):
     """Runs advance + finish on SoA state; returns (R list, iterations, fallback).
 
-    Schedule: every lane takes up to FULL_STEPS steps on the whole batch
+    Schedule: every lane takes up to full_steps(dtype) steps on the whole batch
     (saddle escapes deferred); the lanes still running, falling back or
     pending an escape are then compacted into a buffer of
     straggler_capacity(n) lanes that takes the rest of the step budget and
@@ -469,9 +495,9 @@ def fit_soa(A, R, running, variant, max_iter, eps):
     zeros_i = torch.zeros(running.shape, dtype=_INT, device=running.device)
     st = {"A": A, "R": R, "running": running, "fallback": zeros_b, "switched": zeros_b,
           "iterations": zeros_i, "attempt": zeros_i, "escapes": zeros_i, "pending": zeros_b}
-    full = budget if (not converge and max_iter <= FULL_STEPS_MAX_ITER) else min(FULL_STEPS, budget)
-    # A lane pending an escape after step k <= FULL_STEPS needs at most
-    # MAX_ESCAPES * CONVERGED_CAP more steps (<= budget - FULL_STEPS).
+    full = budget if (not converge and max_iter <= FULL_STEPS_MAX_ITER) else min(full_steps(A[0].dtype), budget)
+    # A lane pending an escape after step k <= full needs at most
+    # MAX_ESCAPES * CONVERGED_CAP more steps (<= budget - full).
     st = _repeat(lambda s: _step(s, variant, converge, cap, eps), st, full)
     rest = budget - full
     capacity = straggler_capacity(n) if n > 0 else 0
