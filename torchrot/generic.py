@@ -536,6 +536,14 @@ def fit_soa(A, R, running, variant, max_iter, eps):
 def _components(X, n):
     """(..., 3, 3) -> 9 contiguous (n,) tensors."""
     flat = X.reshape(n, 9).t().contiguous()
+    if _compiling():
+        # Inductor must store an as_strided view's input: the transposed
+        # entries are written once (a tiled, vectorised transpose) and the
+        # kernels that read them load contiguous vectors. Inlined instead,
+        # each read is a stride-9 load of X, and inductor's CPU code then runs
+        # the whole consuming kernel (normalisation and cold start) one lane at
+        # a time: ~70 ns per matrix instead of ~20 (benchmarks/generic_path.py).
+        flat = flat.as_strided((9, n), (n, 1))
     return list(flat.unbind(0))
 
 
