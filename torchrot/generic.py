@@ -536,13 +536,16 @@ def fit_soa(A, R, running, variant, max_iter, eps):
 def _components(X, n):
     """(..., 3, 3) -> 9 contiguous (n,) tensors."""
     flat = X.reshape(n, 9).t().contiguous()
-    if _compiling():
+    if _compiling() and X.device.type == "cpu" and X.dtype == torch.float32:
         # Inductor must store an as_strided view's input: the transposed
         # entries are written once (a tiled, vectorised transpose) and the
         # kernels that read them load contiguous vectors. Inlined instead,
         # each read is a stride-9 load of X, and inductor's CPU code then runs
         # the whole consuming kernel (normalisation and cold start) one lane at
-        # a time: ~70 ns per matrix instead of ~20 (benchmarks/generic_path.py).
+        # a time: ~70 ns per matrix instead of ~40 (benchmarks/generic_path.py).
+        # Not in float64: there inductor's vector code (two AVX2 registers per
+        # value) ran slower than its scalar loop (one-step fit 387 vs 133 ns).
+        # Not on accelerators: nothing measured there.
         flat = flat.as_strided((9, n), (n, 1))
     return list(flat.unbind(0))
 
