@@ -27,6 +27,11 @@ from torchrot.reference import fit_rotation_backward_reference, fit_rotation_ref
 
 _OTHER_DEVICES = ("cuda", "xpu", "mps")
 
+# The operator of the plain training call, bound once (a lookup through
+# torch.ops costs about a microsecond a call), and the dtypes it takes.
+_fit_rotation_autograd = torch.ops.torchrot._fit_rotation_autograd.default
+_TRAINING_DTYPES = (torch.float32, torch.float64)
+
 
 class FitInfo(NamedTuple):
     """Result of :func:`fit_rotation_info`.
@@ -112,7 +117,15 @@ def fit_rotation(
         unknown variant; max_iter out of range; gradient_eps out of range.
         A call that raises changes no tensor it was given.
     """
-    _check_call(M, init, max_iter, variant, gradient_eps, out)
+    compiling = torch.compiler.is_compiling()
+    _check_call(M, init, max_iter, variant, gradient_eps, out, compiling)
+    if out is None and _plain_reverse_mode(M, compiling):
+        # The common training call: the operator's reverse-mode derivative,
+        # recorded in C++ (csrc/training.cpp) instead of by the Python
+        # Autograd kernel, which costs several times a small fit. Tested
+        # first, with the fewest Python operations: a small batch's fit costs
+        # about as much as them.
+        return _fit_rotation_autograd(M, init, max_iter, variant, gradient_eps)
     differentiable = _needs_derivative(M)
     if out is not None:
         if differentiable:
@@ -122,12 +135,7 @@ def fit_rotation(
             )
         torch.ops.torchrot.fit_rotation_out(M, init, max_iter, variant, out)
         return out
-    if differentiable and _plain_reverse_mode(M):
-        # The common training call: the operator's reverse-mode derivative,
-        # recorded in C++ (csrc/training.cpp) instead of by the Python
-        # Autograd kernel, which costs several times a small fit.
-        return torch.ops.torchrot._fit_rotation_autograd.default(M, init, max_iter, variant, gradient_eps)
-    if differentiable or torch.compiler.is_compiling():
+    if differentiable or compiling:
         # The operator's Autograd kernel (torchrot/_autograd.py) records the
         # derivatives in every mode (backward, forward AD, each torch.func
         # level), in eager and where torch.compile traces it, so both run the
@@ -141,13 +149,14 @@ def fit_rotation(
         return torch.ops.torchrot.fit_rotation.default(M, init, max_iter, variant, gradient_eps)
 
 
-def _check_call(M, init, max_iter, variant, gradient_eps, out=None) -> None:
+def _check_call(M, init, max_iter, variant, gradient_eps, out=None, compiling: bool | None = None) -> None:
     """The wrapper's share of the argument checks. Eager: the types that the
     operator's schema would reject with a generic RuntimeError; the operator
     checks the rest (csrc/ops.cpp). While torch.compile traces: all of them,
     in the operator's order, so that a bad argument raises its own TypeError /
     ValueError (a graph break runs it eagerly) instead of an error wrapped by
-    the tracer around the fake kernel's."""
+    the tracer around the fake kernel's. ``compiling``: torch.compiler.is_compiling(),
+    if the caller has it."""
     check_tensor(M, "M")
     if init is not None:
         check_tensor(init, "init")
@@ -160,22 +169,28 @@ def _check_call(M, init, max_iter, variant, gradient_eps, out=None) -> None:
         check_gradient_eps_type(gradient_eps)
     # All checks, in the operator's order: while traced, and for out=, whose
     # operator does not take gradient_eps (its value is checked after the rest).
-    if torch.compiler.is_compiling() or (custom_eps and out is not None):
+    if compiling is None:
+        compiling = torch.compiler.is_compiling()
+    if compiling or (custom_eps and out is not None):
         check_all(M, init, max_iter, variant)
         if out is not None:
             check_out(M, out)
         check_gradient_eps(gradient_eps)
 
 
-def _plain_reverse_mode(M: torch.Tensor) -> bool:
-    """Reverse mode only, on a plain float32/float64 tensor: no torch.func
-    level, forward AD, tracing or reduced precision (autocast casts those)."""
+def _plain_reverse_mode(M: torch.Tensor, compiling: bool) -> bool:
+    """Whether a call records a reverse-mode derivative only, on a plain
+    float32/float64 tensor: M requires grad with grad mode on, and no
+    torch.func level, forward AD, tracing (``compiling``) or reduced precision
+    (autocast casts those)."""
     return (
         type(M) is torch.Tensor
-        and M.dtype in (torch.float32, torch.float64)
+        and M.requires_grad
+        and not compiling
+        and torch.is_grad_enabled()
         and forward_ad._current_level < 0
+        and M.dtype in _TRAINING_DTYPES
         and not torch._C._are_functorch_transforms_active()
-        and not torch.compiler.is_compiling()
     )
 
 

@@ -16,6 +16,7 @@ from torch import nn
 
 import torchrot
 from torchrot._checks import VARIANTS, check_gradient_eps
+from torchrot._limits import GRADIENT_EPS
 from torchrot.registration import RigidTransform, rigid_registration
 
 __all__ = ["RotationFit", "RigidRegistration"]
@@ -59,11 +60,11 @@ class RotationFit(nn.Module):
         ``init``: optional warm-start rotations ``(..., 3, 3)`` broadcastable
         to the batch (no gradient flows to it).
         """
-        options = {"max_iter": self.max_iter, "variant": self.variant}
-        # Only passed when set, so the library default applies otherwise.
-        if self.gradient_eps is not None:
-            options["gradient_eps"] = self.gradient_eps
-        return torchrot.fit_rotation(as_matrices(M), init, **options)
+        # The library default unless set (GRADIENT_EPS itself: fit_rotation
+        # tells the default apart by identity).
+        gradient_eps = GRADIENT_EPS if self.gradient_eps is None else self.gradient_eps
+        return torchrot.fit_rotation(as_matrices(M), init, max_iter=self.max_iter, variant=self.variant,
+                                     gradient_eps=gradient_eps)
 
     def extra_repr(self) -> str:
         return f"max_iter={self.max_iter}, variant={self.variant!r}, gradient_eps={self.gradient_eps}"
@@ -100,9 +101,10 @@ def as_matrices(M: torch.Tensor) -> torch.Tensor:
     """``(..., 3, 3)`` view of M given as ``(..., 3, 3)`` or row-major ``(..., 9)``."""
     if not isinstance(M, torch.Tensor):
         raise TypeError(f"RotationFit: M must be a torch.Tensor, got {type(M).__name__}")
-    if M.dim() >= 1 and M.shape[-1] == 9:
-        return M.unflatten(-1, (3, 3))
-    if M.dim() >= 2 and M.shape[-2:] == (3, 3):
+    shape = M.shape
+    if shape[-2:] == (3, 3):
         return M
+    if shape[-1:] == (9,):
+        return M.unflatten(-1, (3, 3))
     raise ValueError(f"RotationFit: M must have shape (..., 3, 3) or (..., 9), got {list(M.shape)}")
 
