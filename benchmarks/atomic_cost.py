@@ -3,7 +3,9 @@ raises changes nothing).
 
 ``fit_rotation(M, init=R, max_iter=1, out=R)`` validates every warm start
 before it writes (torch.ops.torchrot._count_bad_warm_starts, the same
-vectorised check the fit applies) so that a bad one raises with R untouched.
+vectorised check the fit applies) so that a bad one raises with R untouched;
+when every warm start is clean the fit then skips its own check
+(FitOptions::init_known_clean), so the pass replaces that check's work.
 This times, interleaved in one process on the same data (warm, float32, N
 matrices, 1 thread): a ``copy_`` of M into a preallocated tensor, the
 validation pass alone, and the one-step update in place and into a separate

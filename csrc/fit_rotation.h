@@ -20,6 +20,11 @@ enum class Variant : int8_t {
 struct FitOptions {
   int64_t max_iter = 0;
   Variant variant = Variant::kConservative;
+  // Every warm start is known finite, a rotation and at the compute precision
+  // (WarmStartCount::unclean == 0 for exactly these values): the fit uses
+  // them as they are, without its own check. The results are those of the
+  // checked fit, which would find the same and use them as they are too.
+  bool init_known_clean = false;
 };
 
 // Per-matrix outcome, as reported by torchrot.fit_rotation_info.
@@ -55,9 +60,15 @@ int64_t fit_rotation_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& M, 
                          const MatrixBatch& out, const FitOptions& options, int32_t* iterations,
                          uint8_t* status);
 
-// How many of n warm starts are not rotations (limits::kInitTolerance, det
-// <= 0; NaN/Inf ones are data, not errors), by the check the fit applies.
-int64_t count_bad_warm_starts_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& init);
+// What the check the fit applies finds in n warm starts.
+struct WarmStartCount {
+  int64_t bad = 0;      // finite but not rotations (limits::kInitTolerance, det <= 0): the call raises
+  int64_t unclean = 0;  // not finite, not rotations, or rotations the fit first cleans up
+                        // (deviation >= limits::kInitClean*, see kernel::clean_warm_start)
+};
+
+// The check of n warm starts, without fitting (NaN/Inf ones are data, not errors).
+WarmStartCount count_bad_warm_starts_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& init);
 
 // The derivative of n fits R = fit_rotation(M), from the optimality condition
 // (kernel/rotation_gradient.h): out = R [u]x with u the damped solution of

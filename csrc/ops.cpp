@@ -229,11 +229,11 @@ MatrixBatch broadcast_view(const at::Tensor& t, at::IntArrayRef shape, int64_t n
   return contiguous_view(keep);
 }
 
-// The warm starts of `init` (any shape (..., 3, 3)) that are not rotations,
-// checked in `compute`, the dtype of the fit: the values the fit checks itself.
-int64_t count_bad_warm_starts(const at::Tensor& init, at::ScalarType compute) {
+// The check of the warm starts of `init` (any shape (..., 3, 3)), in
+// `compute`, the dtype of the fit: the values the fit checks itself.
+WarmStartCount count_bad_warm_starts(const at::Tensor& init, at::ScalarType compute) {
   const int64_t n = init.numel() / 9;
-  if (n == 0) return 0;
+  if (n == 0) return {};
   at::Tensor keep;
   return count_bad_warm_starts_cpu(compute, n, broadcast_view(init, init.sizes(), n, compute, keep));
 }
@@ -243,15 +243,18 @@ int64_t count_bad_warm_starts(const at::Tensor& init, at::ScalarType compute) {
 // (benchmarks/atomic_cost.py).
 int64_t count_bad_warm_starts_op(const at::Tensor& init) {
   check_matrix_arg(init, "init");
-  return count_bad_warm_starts(init, compute_dtype(init.scalar_type()));
+  return count_bad_warm_starts(init, compute_dtype(init.scalar_type())).bad;
 }
 
 // Raises (ValueError) if a warm start of `init`, taken in its own shape
 // (not broadcast), is not a rotation: run before anything is written, so that
-// a call that raises leaves the caller's out as it was.
-void check_warm_starts(const at::Tensor& init, at::ScalarType compute) {
-  const int64_t bad = count_bad_warm_starts(init, compute);
-  if (bad != 0) throw_bad_init(bad, init.numel() / 9);
+// a call that raises leaves the caller's out as it was. Returns whether every
+// warm start is clean (FitOptions::init_known_clean): the fit then skips its
+// own check, so the validation costs the call one pass, not two checks.
+bool check_warm_starts(const at::Tensor& init, at::ScalarType compute) {
+  const WarmStartCount count = count_bad_warm_starts(init, compute);
+  if (count.bad != 0) throw_bad_init(count.bad, init.numel() / 9);
+  return count.unclean == 0;
 }
 
 // Where run_fit writes: `out` itself, given by the caller or allocated for
@@ -271,7 +274,7 @@ void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out,
   const bool reduced = compute != M.scalar_type();
   const int64_t n = M.numel() / 9;
   if (n == 0) return;
-  if (init.defined() && output == Output::kCallers) check_warm_starts(init, compute);
+  if (init.defined() && output == Output::kCallers) options.init_known_clean = check_warm_starts(init, compute);
 
   at::Tensor m_keep, init_keep, out_keep;  // own any materialised copies
   const MatrixBatch m_view = broadcast_view(M, M.sizes(), n, compute, m_keep);

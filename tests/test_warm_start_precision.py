@@ -17,7 +17,7 @@ import torch
 
 import torchrot
 from torchrot._limits import INIT_TOLERANCE
-from torchrot.testing import CRITERIA, generic_kernel, make_matrices, random_rotations, rotation_errors
+from torchrot.testing import CRITERIA, bits, generic_kernel, make_matrices, random_rotations, rotation_errors
 
 LOW = (torch.float32, torch.float16, torch.bfloat16)
 KERNELS = {"cpu": contextlib.nullcontext, "generic": generic_kernel}
@@ -120,3 +120,26 @@ def test_clearly_not_rotations_rejected(case, kernel, dtype):
     with KERNELS[kernel]():
         with pytest.raises(ValueError, match=r"init must hold rotations .* 1 of 8 are not: pass rotations, or no init"):
             torchrot.fit_rotation(M, init)
+
+
+@pytest.mark.parametrize("max_iter", [None, 1, 3])
+@pytest.mark.parametrize("warm_starts", ["clean", "one lower precision", "one NaN"])
+def test_out_path_gives_the_fresh_results(warm_starts, max_iter, dtype):
+    """out= validates every warm start before it writes; when all are clean
+    (finite rotations at the compute precision) the fit skips its own check
+    (FitOptions::init_known_clean). Its results are the checked fit's bit for
+    bit, whichever warm starts the batch holds (a lower-precision or NaN one
+    keeps the check on)."""
+    M = make_matrices("warm", 203, 5, dtype)
+    init = torchrot.fit_rotation(M)
+    if warm_starts == "one lower precision":
+        init[101] = init[101].to(torch.bfloat16).to(dtype)
+    elif warm_starts == "one NaN":
+        init[17, 1, 2] = float("nan")
+    fresh = torchrot.fit_rotation_info(M + 0.1, init, max_iter=max_iter)
+    out = torch.full_like(M, 7.0)
+    torchrot.fit_rotation(M + 0.1, init, max_iter=max_iter, out=out)
+    assert torch.equal(bits(out), bits(fresh.R))
+    in_place = init.clone()
+    torchrot.fit_rotation(M + 0.1, in_place, max_iter=max_iter, out=in_place)
+    assert torch.equal(bits(in_place), bits(fresh.R))

@@ -99,11 +99,11 @@ void fill_view(const MatrixBatch& batch, const T*& data, int64_t stride[3]) {
   for (int d = 0; d < 3; ++d) stride[d] = batch.stride[d];
 }
 
-int64_t run_kernel(const cpu::KernelTable& table, const cpu::WarmStartArgs<float>& args) {
+WarmStartCount run_kernel(const cpu::KernelTable& table, const cpu::WarmStartArgs<float>& args) {
   return table.bad_warm_starts_float(args);
 }
 
-int64_t run_kernel(const cpu::KernelTable& table, const cpu::WarmStartArgs<double>& args) {
+WarmStartCount run_kernel(const cpu::KernelTable& table, const cpu::WarmStartArgs<double>& args) {
   return table.bad_warm_starts_double(args);
 }
 
@@ -137,9 +137,9 @@ std::string set_thread_cpu_kernel(const std::string& name) {
   return previous;
 }
 
-int64_t count_bad_warm_starts_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& init) {
+WarmStartCount count_bad_warm_starts_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& init) {
   const cpu::KernelTable& table = kernels(selected_isa());
-  int64_t bad = 0;
+  WarmStartCount bad;
   AT_DISPATCH_FLOATING_TYPES(dtype, "torchrot_count_bad_warm_starts_cpu", [&] {
     cpu::WarmStartArgs<scalar_t> args{};
     fill_view(init, args.init, args.stride);

@@ -140,7 +140,8 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
       const Mat3<typename L::V> M = load_block<L, kContiguous>(args.M, args.m_stride, first, count);
       Mat3<typename L::V> R0;
       if (args.init != nullptr) R0 = load_block<L, kContiguous>(args.init, args.init_stride, first, count);
-      kernel::LaneState<L> s = kernel::begin_fit<L>(M, args.init != nullptr ? &R0 : nullptr);
+      kernel::LaneState<L> s =
+          kernel::begin_fit<L>(M, args.init != nullptr ? &R0 : nullptr, args.options.init_known_clean);
       kernel::advance<L>(s, args.options, first_budget);
       // Lanes still running get a provisional result, replaced in a later pass.
       store_block<L, kContiguous>(kernel::finish<L>(s), args.out, args.out_stride, first, count);
@@ -193,27 +194,40 @@ int64_t fit_batch(const BatchArgs<typename L::Scalar>& args) {
   return bad_inits.load();
 }
 
-// The warm starts that are not rotations, by the check begin_fit applies,
-// without fitting: fit_rotation_out validates init before it writes anything,
-// so that a call that raises leaves `out` (which may be init itself) as it was.
+// What the check begin_fit applies finds in the warm starts, without
+// fitting: fit_rotation_out validates init before it writes anything, so that
+// a call that raises leaves `out` (which may be init itself) as it was; when
+// every warm start is clean, its fit then skips that check
+// (FitOptions::init_known_clean).
 template <typename L>
-int64_t count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& args) {
+WarmStartCount count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& args) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
   const bool contiguous = is_contiguous_batch(args.stride);
-  std::atomic<int64_t> bad{0};
+  const V clean2(kernel::Tolerances<T>::init_clean * kernel::Tolerances<T>::init_clean);
+  std::atomic<int64_t> bad{0}, unclean{0};
   at::parallel_for(0, args.n, kGrainSize, [&](int64_t begin, int64_t end) {
-    int64_t local = 0;
+    int64_t local_bad = 0, local_unclean = 0;
     for (int64_t first = begin; first < end; first += L::width) {
       const int count = static_cast<int>(std::min<int64_t>(L::width, end - first));
-      const Mat3<typename L::V> R0 = contiguous ? load_block<L, true>(args.init, args.stride, first, count)
-                                                : load_block<L, false>(args.init, args.stride, first, count);
-      const typename L::Mask lanes_bad = kernel::check_warm_start<L>(R0).bad;
-      if (L::any(lanes_bad)) {
-        for (int j = 0; j < count; ++j) local += L::lane_set(lanes_bad, j);
+      const Mat3<V> R0 = contiguous ? load_block<L, true>(args.init, args.stride, first, count)
+                                    : load_block<L, false>(args.init, args.stride, first, count);
+      const kernel::WarmStartCheck<L> check = kernel::check_warm_start<L>(R0);
+      // Used as it is by the fit: finite, a rotation, below init_clean
+      // (the lanes clean_warm_start leaves alone).
+      const typename L::Mask clean =
+          L::mask_and(L::mask_and(check.finite, L::mask_not(check.bad)), L::lt(check.deviation2, clean2));
+      if (!L::all(clean)) {
+        for (int j = 0; j < count; ++j) {
+          local_bad += L::lane_set(check.bad, j);
+          local_unclean += !L::lane_set(clean, j);
+        }
       }
     }
-    bad += local;
+    bad += local_bad;
+    unclean += local_unclean;
   });
-  return bad.load();
+  return WarmStartCount{bad.load(), unclean.load()};
 }
 
 }  // namespace

@@ -69,9 +69,9 @@ struct KernelTable {
   int64_t (*fit_double)(const BatchArgs<double>&);
   void (*tangent_float)(const TangentArgs<float>&);
   void (*tangent_double)(const TangentArgs<double>&);
-  // The number of warm starts that are not rotations (the fit's own check).
-  int64_t (*bad_warm_starts_float)(const WarmStartArgs<float>&);
-  int64_t (*bad_warm_starts_double)(const WarmStartArgs<double>&);
+  // What the fit's own check finds in the warm starts.
+  WarmStartCount (*bad_warm_starts_float)(const WarmStartArgs<float>&);
+  WarmStartCount (*bad_warm_starts_double)(const WarmStartArgs<double>&);
 };
 
 // One per kernel object; the SIMD ones must only be called on CPUs that

@@ -81,9 +81,11 @@ struct LaneState {
 // see clean_warm_start) or the cold start. `init` may be null; lanes whose M
 // or init are unusable, and M = 0 (every rotation is optimal: the start is
 // kept), do not run. A warm start that is not a rotation is flagged whatever M
-// holds (the operator rejects the call).
+// holds (the operator rejects the call). `init_known_clean`: the caller has
+// made this check (FitOptions::init_known_clean), init is used as it is.
 template <typename L>
-inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename L::V>* init) {
+inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename L::V>* init,
+                              bool init_known_clean = false) {
   using T = typename L::Scalar;
   using Tol = Tolerances<T>;
   using V = typename L::V;
@@ -105,7 +107,9 @@ inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename 
   const V inv = L::select(zero, V(0), V(1) / (max_abs * lift));
   for (int k = 0; k < 9; ++k) s.A.a[k] = (M.a[k] * lift) * inv;
 
-  if (init != nullptr) {
+  if (init != nullptr && init_known_clean) {
+    s.R = *init;
+  } else if (init != nullptr) {
     const WarmStartCheck<L> check = check_warm_start<L>(*init);
     finite = L::mask_and(finite, check.finite);
     s.bad_init = check.bad;
