@@ -204,7 +204,6 @@ WarmStartCount count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& ar
   using T = typename L::Scalar;
   using V = typename L::V;
   const bool contiguous = is_contiguous_batch(args.stride);
-  const V clean2(kernel::Tolerances<T>::init_clean * kernel::Tolerances<T>::init_clean);
   std::atomic<int64_t> bad{0}, unclean{0};
   at::parallel_for(0, args.n, kGrainSize, [&](int64_t begin, int64_t end) {
     int64_t local_bad = 0, local_unclean = 0;
@@ -213,10 +212,7 @@ WarmStartCount count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& ar
       const Mat3<V> R0 = contiguous ? load_block<L, true>(args.init, args.stride, first, count)
                                     : load_block<L, false>(args.init, args.stride, first, count);
       const kernel::WarmStartCheck<L> check = kernel::check_warm_start<L>(R0);
-      // Used as it is by the fit: finite, a rotation, below init_clean
-      // (the lanes clean_warm_start leaves alone).
-      const typename L::Mask clean =
-          L::mask_and(L::mask_and(check.finite, L::mask_not(check.bad)), L::lt(check.deviation2, clean2));
+      const typename L::Mask clean = kernel::used_as_is<L>(check, kernel::Tolerances<T>::init_clean);
       if (!L::all(clean)) {
         for (int j = 0; j < count; ++j) {
           local_bad += L::lane_set(check.bad, j);
