@@ -49,7 +49,7 @@ inline Mat3<typename L::V> load_block(const typename L::Scalar* data, const int6
   if constexpr (kContiguous && L::width > 1) {
     if (count == L::width) {  // full block: in-register transposition
       Mat3<typename L::V> A;
-      load_soa<T>(data + 9 * first, A.a);
+      load_soa(data + 9 * first, A.a);
       return A;
     }
   }
@@ -72,7 +72,7 @@ inline void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, 
 #ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
   if constexpr (kContiguous && L::width > 1) {
     if (count == L::width) {
-      store_soa<T>(R.a, data + 9 * first);
+      store_soa(R.a, data + 9 * first);
       return;
     }
   }
