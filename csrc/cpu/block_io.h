@@ -8,6 +8,7 @@
 
 #include <cstdint>
 
+#include "../kernel/force_inline.h"
 #include "../kernel/lanes.h"
 #include "soa_transpose.h"
 
@@ -32,12 +33,39 @@ inline bool is_soa_batch(const int64_t stride[3]) { return stride[0] == 1; }
 // Offset of entry k of matrix 0 (the start of entry k's values in SoA layout).
 inline int64_t entry_offset(const int64_t stride[3], int k) { return (k / 3) * stride[1] + (k % 3) * stride[2]; }
 
+// load_block and store_block through a buffer, element by element: for any
+// strides and for tail blocks. Out of line, so that the vector paths of the
+// callers keep their registers.
+template <typename L, bool kContiguous>
+[[gnu::noinline]] Mat3<typename L::V> gather_block(const typename L::Scalar* data, const int64_t stride[3],
+                                                  int64_t first, int count) {
+  using T = typename L::Scalar;
+  alignas(64) T buf[9][L::width];
+  for (int j = 0; j < L::width; ++j) {
+    for (int k = 0; k < 9; ++k) {
+      buf[k][j] = j < count ? data[offset<kContiguous>(stride, first + j, k)] : T(k % 4 == 0 ? 1 : 0);
+    }
+  }
+  Mat3<typename L::V> A;
+  for (int k = 0; k < 9; ++k) A.a[k] = L::load(buf[k]);
+  return A;
+}
+
+template <typename L, bool kContiguous>
+[[gnu::noinline]] void scatter_block(const Mat3<typename L::V>& R, typename L::Scalar* data, const int64_t stride[3],
+                                     int64_t first, int count) {
+  using T = typename L::Scalar;
+  alignas(64) T buf[9][L::width];
+  for (int k = 0; k < 9; ++k) L::store(R.a[k], buf[k]);
+  for (int j = 0; j < count; ++j)
+    for (int k = 0; k < 9; ++k) data[offset<kContiguous>(stride, first + j, k)] = buf[k][j];
+}
+
 // Gathers `count` matrices starting at `first` into SoA lanes; missing lanes
 // of a tail block get the identity, a harmless input.
 template <typename L, bool kContiguous>
-inline Mat3<typename L::V> load_block(const typename L::Scalar* data, const int64_t stride[3], int64_t first,
-                                      int count) {
-  using T = typename L::Scalar;
+TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, const int64_t stride[3],
+                                               int64_t first, int count) {
   if constexpr (!kContiguous && L::width > 1) {
     if (count == L::width && is_soa_batch(stride)) {
       Mat3<typename L::V> A;
@@ -54,21 +82,12 @@ inline Mat3<typename L::V> load_block(const typename L::Scalar* data, const int6
     }
   }
 #endif
-  alignas(64) T buf[9][L::width];
-  for (int j = 0; j < L::width; ++j) {
-    for (int k = 0; k < 9; ++k) {
-      buf[k][j] = j < count ? data[offset<kContiguous>(stride, first + j, k)] : T(k % 4 == 0 ? 1 : 0);
-    }
-  }
-  Mat3<typename L::V> A;
-  for (int k = 0; k < 9; ++k) A.a[k] = L::load(buf[k]);
-  return A;
+  return gather_block<L, kContiguous>(data, stride, first, count);
 }
 
 template <typename L, bool kContiguous>
-inline void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, const int64_t stride[3],
-                        int64_t first, int count) {
-  using T = typename L::Scalar;
+TORCHROT_INLINE void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, const int64_t stride[3],
+                                 int64_t first, int count) {
 #ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
   if constexpr (kContiguous && L::width > 1) {
     if (count == L::width) {
@@ -83,10 +102,7 @@ inline void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, 
       return;
     }
   }
-  alignas(64) T buf[9][L::width];
-  for (int k = 0; k < 9; ++k) L::store(R.a[k], buf[k]);
-  for (int j = 0; j < count; ++j)
-    for (int k = 0; k < 9; ++k) data[offset<kContiguous>(stride, first + j, k)] = buf[k][j];
+  scatter_block<L, kContiguous>(R, data, stride, first, count);
 }
 
 inline bool is_contiguous_batch(const int64_t s[3]) { return s[0] == 9 && s[1] == 3 && s[2] == 1; }

@@ -122,7 +122,11 @@ inline void store_diagnostics(const kernel::LaneState<L>& s, int lane, const Bat
 }
 
 // Fits matrices [begin, end); returns how many had a bad warm start.
-template <typename L, bool kContiguous>
+// kOneStep: max_iter = 1, through kernel::advance_one_step (a code path of its
+// own, so that the block's state stays in registers from the loads to the
+// stores; measured on AVX2 in cache, contiguous one-step: float32 39.5 -> 36.0
+// ns/matrix, float64 82 -> 77).
+template <typename L, bool kContiguous, bool kOneStep>
 int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end) {
   using T = typename L::Scalar;
   const bool converge = args.options.max_iter <= 0;
@@ -142,7 +146,11 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
       if (args.init != nullptr) R0 = load_block<L, kContiguous>(args.init, args.init_stride, first, count);
       kernel::LaneState<L> s =
           kernel::begin_fit<L>(M, args.init != nullptr ? &R0 : nullptr, args.options.init_known_clean);
-      kernel::advance<L>(s, args.options, first_budget);
+      if constexpr (kOneStep) {
+        kernel::advance_one_step<L>(s, args.options.variant);
+      } else {
+        kernel::advance<L>(s, args.options, first_budget);
+      }
       // Lanes still running get a provisional result, replaced in a later pass.
       store_block<L, kContiguous>(kernel::finish<L>(s), args.out, args.out_stride, first, count);
       if (args.init != nullptr && L::any(s.bad_init)) {
@@ -189,7 +197,11 @@ int64_t fit_batch(const BatchArgs<typename L::Scalar>& args) {
                           (args.init == nullptr || is_contiguous_batch(args.init_stride));
   std::atomic<int64_t> bad_inits{0};
   at::parallel_for(0, args.n, kGrainSize, [&](int64_t begin, int64_t end) {
-    bad_inits += contiguous ? fit_range<L, true>(args, begin, end) : fit_range<L, false>(args, begin, end);
+    if (args.options.max_iter == 1) {
+      bad_inits += contiguous ? fit_range<L, true, true>(args, begin, end) : fit_range<L, false, true>(args, begin, end);
+    } else {
+      bad_inits += contiguous ? fit_range<L, true, false>(args, begin, end) : fit_range<L, false, false>(args, begin, end);
+    }
   });
   return bad_inits.load();
 }

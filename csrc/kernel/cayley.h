@@ -15,6 +15,7 @@
 #pragma once
 
 #include "../fit_rotation.h"
+#include "force_inline.h"
 #include "lanes.h"
 #include "mat3.h"
 
@@ -41,12 +42,12 @@ struct CayleyStep {
 };
 
 template <typename V>
-inline V trace(const Mat3<V>& S) {
+TORCHROT_INLINE V trace(const Mat3<V>& S) {
   return S(0, 0) + S(1, 1) + S(2, 2);
 }
 
 template <typename V>
-inline void skew_vector(const Mat3<V>& S, V m[3]) {  // Eq. 12
+TORCHROT_INLINE void skew_vector(const Mat3<V>& S, V m[3]) {  // Eq. 12
   m[0] = S(2, 1) - S(1, 2);
   m[1] = S(0, 2) - S(2, 0);
   m[2] = S(1, 0) - S(0, 1);
@@ -54,7 +55,7 @@ inline void skew_vector(const Mat3<V>& S, V m[3]) {  // Eq. 12
 
 // The estimate c of the maximal objective for `variant` (Sec. 4.2).
 template <typename L>
-inline typename L::V objective_estimate(const Mat3<typename L::V>& S, Variant variant) {
+TORCHROT_INLINE typename L::V objective_estimate(const Mat3<typename L::V>& S, Variant variant) {
   using V = typename L::V;
   const V t = trace(S);
   if (variant == Variant::kNewton) return t;  // Eq. 21: the Taylor model at 0
@@ -77,7 +78,7 @@ inline typename L::V objective_estimate(const Mat3<typename L::V>& S, Variant va
 // Algorithm 2 for a given c: (S + S^T - (t + c) I) z = -m by Cramer's rule
 // (Eqs. 30-33), written with the symmetric adjugate of H.
 template <typename V>
-inline CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
+TORCHROT_INLINE CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
   V m[3];
   skew_vector(S, m);
   const V shift = trace(S) + c;
@@ -108,7 +109,7 @@ inline CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
 // The rotation with Cayley parameters z = -w / d (Eq. 10), multiplied
 // through by d^2: Q = ((d^2 - w.w) I + 2 w w^T - 2 d [w]x) / (d^2 + w.w).
 template <typename V>
-inline Mat3<V> cayley_rotation(const CayleyStep<V>& step) {
+TORCHROT_INLINE Mat3<V> cayley_rotation(const CayleyStep<V>& step) {
   const V x = step.w[0], y = step.w[1], w = step.w[2];
   const V inv = V(1) / (step.dd + step.ww);
   const V diag = step.dd - step.ww;

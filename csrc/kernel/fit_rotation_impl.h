@@ -15,6 +15,7 @@
 #include "../limits.h"
 #include "cayley.h"
 #include "cold_start.h"
+#include "force_inline.h"
 #include "horn_fallback.h"
 #include "lanes.h"
 #include "optimality.h"
@@ -84,7 +85,7 @@ struct LaneState {
 // holds (the operator rejects the call). `init_known_clean`: the caller has
 // made this check (FitOptions::init_known_clean), init is used as it is.
 template <typename L>
-inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename L::V>* init,
+TORCHROT_INLINE LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename L::V>* init,
                               bool init_known_clean = false) {
   using T = typename L::Scalar;
   using Tol = Tolerances<T>;
@@ -122,6 +123,21 @@ inline LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<typename 
   return s;
 }
 
+// Whether a lane can take `step`. A singular H (or a non-finite step) takes
+// no step; nor does a step whose d^2 + w.w is below the smallest normal
+// number: 1 / (d^2 + w.w) in cayley_rotation would overflow and make R Inf/NaN
+// (d and w have lost their precision by then anyway). Since |S| >= 1 after
+// normalisation, that means H is singular to working precision (a flat
+// objective).
+template <typename L>
+TORCHROT_INLINE typename L::Mask can_take(const CayleyStep<typename L::V>& step) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  const V norm2 = step.dd + step.ww;
+  return L::mask_and(L::mask_and(L::gt(step.dd, V(0)), L::is_finite(norm2)),
+                     L::gt(norm2, V(std::numeric_limits<T>::min())));
+}
+
 // Takes up to `budget` Cayley steps on the running lanes. One function per
 // lane type: GCC's clone specialised to one call site (IPA constant
 // propagation) and its inlining choices around it ran the AVX2 fits slower
@@ -145,15 +161,7 @@ template <typename L>
       c = L::select(s.switched, objective_estimate<L>(S, Variant::kConservative), c);
     }
     const CayleyStep<V> step = cayley_step(S, c);
-
-    // A singular H (or a non-finite step) takes no step; nor does a step
-    // whose d^2 + w.w is below the smallest normal number: 1 / (d^2 + w.w) in
-    // cayley_rotation would overflow and make R Inf/NaN (d and w have lost
-    // their precision by then anyway). Since |S| >= 1 after normalisation,
-    // that means H is singular to working precision (a flat objective).
-    const V norm2 = step.dd + step.ww;
-    const Mask valid = L::mask_and(L::mask_and(L::gt(step.dd, zero), L::is_finite(norm2)),
-                                   L::gt(norm2, V(std::numeric_limits<T>::min())));
+    const Mask valid = can_take<L>(step);
     const Mask stepping = L::mask_and(s.running, valid);
     const Mask stalled = L::mask_and(s.running, L::mask_not(valid));
     s.R = select<L>(stepping, times(s.R, cayley_rotation(step)), s.R);
@@ -194,21 +202,41 @@ template <typename L>
   }
 }
 
+// advance(s, options, 1) for max_iter = 1 (the paper's one-step warm start):
+// the same operations on the running lanes, so the same results bit for bit,
+// without the bookkeeping of the convergence decision. Inline, so that the
+// block's state stays in registers from begin_fit to finish.
+template <typename L>
+TORCHROT_INLINE void advance_one_step(LaneState<L>& s, Variant variant) {
+  using V = typename L::V;
+  const Mat3<V> S = transpose_times(s.R, s.A);
+  const CayleyStep<V> step = cayley_step(S, objective_estimate<L>(S, variant));
+  const typename L::Mask stepping = L::mask_and(s.running, can_take<L>(step));
+  s.R = select<L>(stepping, times(s.R, cayley_rotation(step)), s.R);
+  s.iterations = s.iterations + L::select(stepping, V(1), V(0));
+  s.attempt_steps = s.iterations;
+  s.running = L::all_false();
+}
+
+// The fallback lanes of R, solved exactly (rare: out of line).
+template <typename L>
+[[gnu::noinline]] void solve_fallback_lanes(const LaneState<L>& s, Mat3<typename L::V>& R) {
+  for (int i = 0; i < L::width; ++i) {
+    if (L::lane_set(s.fallback, i)) insert_lane<L>(R, i, horn_rotation(extract_lane<L>(s.A, i)));
+  }
+}
+
 // The result of every lane that is not running. One Newton-Schulz step
 // squares the orthonormality error of the warm start (which may have drifted
 // over many calls that fed results back) and of the product of Cayley factors
 // (which accumulates rounding), so every result is a rotation at the dtype's
 // precision. Fallback lanes are solved exactly, unusable lanes are NaN.
 template <typename L>
-inline Mat3<typename L::V> finish(const LaneState<L>& s) {
+TORCHROT_INLINE Mat3<typename L::V> finish(const LaneState<L>& s) {
   using T = typename L::Scalar;
   using V = typename L::V;
   Mat3<V> R = reorthonormalize(s.R);
-  if (L::any(s.fallback)) {
-    for (int i = 0; i < L::width; ++i) {
-      if (L::lane_set(s.fallback, i)) insert_lane<L>(R, i, horn_rotation(extract_lane<L>(s.A, i)));
-    }
-  }
+  if (L::any(s.fallback)) solve_fallback_lanes<L>(s, R);
   const typename L::Mask nan_lanes = L::mask_or(s.non_finite, s.bad_init);
   if (L::any(nan_lanes)) {
     const V nan(std::numeric_limits<T>::quiet_NaN());

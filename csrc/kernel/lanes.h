@@ -13,6 +13,7 @@
 #include <cmath>
 #include <limits>
 
+#include "force_inline.h"
 #include "mat3.h"
 
 namespace torchrot {
@@ -104,7 +105,7 @@ inline void insert_lane(Mat3<typename L::V>& A, int i, const Mat3<typename L::Sc
 }
 
 template <typename L>
-inline Mat3<typename L::V> select(typename L::Mask m, const Mat3<typename L::V>& if_true,
+TORCHROT_INLINE Mat3<typename L::V> select(typename L::Mask m, const Mat3<typename L::V>& if_true,
                                   const Mat3<typename L::V>& if_false) {
   Mat3<typename L::V> out;
   for (int k = 0; k < 9; ++k) out.a[k] = L::select(m, if_true.a[k], if_false.a[k]);

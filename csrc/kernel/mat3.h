@@ -8,6 +8,8 @@
 
 #include <cstdint>
 
+#include "force_inline.h"
+
 namespace torchrot {
 namespace kernel {
 inline namespace CPU_CAPABILITY {
@@ -22,7 +24,7 @@ struct Mat3 {
 
 // Returns A^T B.
 template <typename V>
-inline Mat3<V> transpose_times(const Mat3<V>& A, const Mat3<V>& B) {
+TORCHROT_INLINE Mat3<V> transpose_times(const Mat3<V>& A, const Mat3<V>& B) {
   Mat3<V> C;
   for (int r = 0; r < 3; ++r) {
     for (int c = 0; c < 3; ++c) {
@@ -34,7 +36,7 @@ inline Mat3<V> transpose_times(const Mat3<V>& A, const Mat3<V>& B) {
 
 // Returns A B.
 template <typename V>
-inline Mat3<V> times(const Mat3<V>& A, const Mat3<V>& B) {
+TORCHROT_INLINE Mat3<V> times(const Mat3<V>& A, const Mat3<V>& B) {
   Mat3<V> C;
   for (int r = 0; r < 3; ++r) {
     for (int c = 0; c < 3; ++c) {
@@ -46,7 +48,7 @@ inline Mat3<V> times(const Mat3<V>& A, const Mat3<V>& B) {
 
 // R^T R, computed once per symmetric pair.
 template <typename V>
-inline Mat3<V> gram(const Mat3<V>& R) {
+TORCHROT_INLINE Mat3<V> gram(const Mat3<V>& R) {
   Mat3<V> G;
   for (int r = 0; r < 3; ++r) {
     for (int c = r; c < 3; ++c) {
@@ -62,13 +64,13 @@ inline Mat3<V> gram(const Mat3<V>& R) {
 // almost-rotation, so warm starts fed back call after call do not drift.
 // G is R^T R (see gram).
 template <typename V>
-inline Mat3<V> reorthonormalize(const Mat3<V>& R, Mat3<V> G) {
+TORCHROT_INLINE Mat3<V> reorthonormalize(const Mat3<V>& R, Mat3<V> G) {
   for (int i = 0; i < 9; ++i) G.a[i] = V(i % 4 == 0 ? 1.5 : 0) - V(0.5) * G.a[i];
   return times(R, G);
 }
 
 template <typename V>
-inline Mat3<V> reorthonormalize(const Mat3<V>& R) {
+TORCHROT_INLINE Mat3<V> reorthonormalize(const Mat3<V>& R) {
   return reorthonormalize(R, gram(R));
 }
 

@@ -3,6 +3,7 @@
 #pragma once
 
 #include "../limits.h"
+#include "force_inline.h"
 #include "lanes.h"
 #include "mat3.h"
 
@@ -18,7 +19,7 @@ namespace {
 // Tested by Sylvester's criterion on tr(S) I - sym(S) + slack I; a fixed point
 // that passes falls short of the maximum by at most 2 slack.
 template <typename L>
-inline typename L::Mask is_maximum(const Mat3<typename L::V>& S, typename L::Scalar slack) {
+TORCHROT_INLINE typename L::Mask is_maximum(const Mat3<typename L::V>& S, typename L::Scalar slack) {
   using V = typename L::V;
   const V t = S(0, 0) + S(1, 1) + S(2, 2) + V(slack);
   const V p00 = t - S(0, 0), p11 = t - S(1, 1), p22 = t - S(2, 2);
@@ -33,14 +34,14 @@ inline typename L::Mask is_maximum(const Mat3<typename L::V>& S, typename L::Sca
 
 // |G - I|_F^2 for the Gram matrix G = R^T R: how far R is from orthonormal.
 template <typename V>
-inline V orthonormality_deviation2(const Mat3<V>& G) {
+TORCHROT_INLINE V orthonormality_deviation2(const Mat3<V>& G) {
   const V d0 = G(0, 0) - V(1), d1 = G(1, 1) - V(1), d2 = G(2, 2) - V(1);
   const V off = G(0, 1) * G(0, 1) + G(0, 2) * G(0, 2) + G(1, 2) * G(1, 2);
   return d0 * d0 + d1 * d1 + d2 * d2 + V(2) * off;
 }
 
 template <typename V>
-inline V determinant(const Mat3<V>& R) {
+TORCHROT_INLINE V determinant(const Mat3<V>& R) {
   return R(0, 0) * (R(1, 1) * R(2, 2) - R(1, 2) * R(2, 1)) - R(0, 1) * (R(1, 0) * R(2, 2) - R(1, 2) * R(2, 0)) +
          R(0, 2) * (R(1, 0) * R(2, 1) - R(1, 1) * R(2, 0));
 }
@@ -56,7 +57,7 @@ struct WarmStartCheck {
 };
 
 template <typename L>
-inline WarmStartCheck<L> check_warm_start(const Mat3<typename L::V>& R) {
+TORCHROT_INLINE WarmStartCheck<L> check_warm_start(const Mat3<typename L::V>& R) {
   using V = typename L::V;
   using T = typename L::Scalar;
   WarmStartCheck<L> check;
@@ -75,7 +76,7 @@ inline WarmStartCheck<L> check_warm_start(const Mat3<typename L::V>& R) {
 // rotations deviating less than `clean`. (The operator's validation pass
 // counts the others, see FitOptions::init_known_clean.)
 template <typename L>
-inline typename L::Mask used_as_is(const WarmStartCheck<L>& check, typename L::Scalar clean) {
+TORCHROT_INLINE typename L::Mask used_as_is(const WarmStartCheck<L>& check, typename L::Scalar clean) {
   using V = typename L::V;
   return L::mask_and(L::mask_and(check.finite, L::mask_not(check.bad)), L::lt(check.deviation2, V(clean * clean)));
 }
