@@ -58,6 +58,22 @@ def test_max_iter_matches_kernel(max_iter):
     assert (R - R_k).abs().max().item() <= 1e-10
 
 
+@pytest.mark.parametrize("variant", ["newton", "conservative", "gershgorin"])
+def test_one_step_warm_matches_kernel(variant):
+    """max_iter=1 from warm starts, which the kernel runs on a path of its own
+    (advance_one_step), against the reference's Algorithm 1: the same steps
+    and status (a zero and a NaN matrix among them) and the same rotations."""
+    M = make_matrices("rot60", N, 19, torch.float64)
+    init = torchrot.fit_rotation(M + 0.3 * make_matrices("gaussian", N, 20, torch.float64))
+    M[7] = 0.0
+    M[11, 2, 1] = float("nan")
+    R, it, st = torchrot.fit_rotation_reference(M, init, max_iter=1, variant=variant, return_info=True)
+    R_k, it_k, st_k = torchrot.fit_rotation_info(M, init, max_iter=1, variant=variant)
+    assert torch.equal(it, it_k) and torch.equal(st, st_k)
+    assert it[7] == 0 and st[11] == 3 and int(it.sum()) == N - 2
+    torch.testing.assert_close(R_k, R, rtol=0, atol=1e-10, equal_nan=True)
+
+
 @pytest.mark.parametrize("name", WELL_CONDITIONED)
 def test_matches_kernel_float32(name):
     M = make_matrices(name, N, 15, torch.float32)
