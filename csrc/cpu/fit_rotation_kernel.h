@@ -156,7 +156,7 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
       if (args.init != nullptr && L::any(s.bad_init)) {
         for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
       }
-      if (L::any(s.running)) {
+      if (!kOneStep && L::any(s.running)) {
         int64_t index[L::width];
         for (int j = 0; j < L::width; ++j) index[j] = first + j;
         save_running_lanes<L>(s, count, index, pending);
@@ -166,7 +166,9 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
           if (!L::lane_set(s.running, j)) store_diagnostics<L>(s, j, args, first + j);
       }
     }
-    // Later passes: the unfinished lanes, regrouped into full blocks.
+    // Later passes: the unfinished lanes, regrouped into full blocks (none
+    // after one step: advance_one_step leaves no lane running).
+    if constexpr (kOneStep) continue;
     while (!pending.empty()) {
       next.clear();
       for (size_t i = 0; i < pending.size(); i += L::width) {
