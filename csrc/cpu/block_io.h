@@ -67,28 +67,27 @@ template <typename L, bool kContiguous>
 template <typename L, bool kContiguous>
 TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, const int64_t stride[3],
                                                int64_t first, int count) {
+  Mat3<typename L::V> A;
   if constexpr (L::width == 1) {  // the scalar path: one matrix, straight
-    Mat3<typename L::V> A;
     for (int k = 0; k < 9; ++k) A.a[k] = data[offset<kContiguous>(stride, first, k)];
     return A;
-  }
-  if constexpr (!kContiguous && L::width > 1) {
-    if (count == L::width && is_soa_batch(stride)) {
-      Mat3<typename L::V> A;
-      for (int k = 0; k < 9; ++k) A.a[k] = L::load(data + first + entry_offset(stride, k));
-      return A;
+  } else {
+    if constexpr (!kContiguous) {
+      if (count == L::width && is_soa_batch(stride)) {  // full block, SoA: plain vectors
+        for (int k = 0; k < 9; ++k) A.a[k] = L::load(data + first + entry_offset(stride, k));
+        return A;
+      }
     }
-  }
 #ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
-  if constexpr (kContiguous && L::width > 1) {
-    if (count == L::width) {  // full block: in-register transposition
-      Mat3<typename L::V> A;
-      load_soa(data + 9 * first, A.a);
-      return A;
+    if constexpr (kContiguous) {
+      if (count == L::width) {  // full contiguous block: in-register transposition
+        load_soa(data + 9 * first, A.a);
+        return A;
+      }
     }
-  }
 #endif
-  return gather_block<L, kContiguous>(data, stride, first, count);
+    return gather_block<L, kContiguous>(data, stride, first, count);
+  }
 }
 
 template <typename L, bool kContiguous>
@@ -96,23 +95,23 @@ TORCHROT_INLINE void store_block(const Mat3<typename L::V>& R, typename L::Scala
                                  int64_t first, int count) {
   if constexpr (L::width == 1) {
     for (int k = 0; k < 9; ++k) data[offset<kContiguous>(stride, first, k)] = R.a[k];
-    return;
-  }
+  } else {
 #ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
-  if constexpr (kContiguous && L::width > 1) {
-    if (count == L::width) {
-      store_soa(R.a, data + 9 * first);
-      return;
+    if constexpr (kContiguous) {
+      if (count == L::width) {
+        store_soa(R.a, data + 9 * first);
+        return;
+      }
     }
-  }
 #endif
-  if constexpr (!kContiguous && L::width > 1) {
-    if (count == L::width && is_soa_batch(stride)) {
-      for (int k = 0; k < 9; ++k) L::store(R.a[k], data + first + entry_offset(stride, k));
-      return;
+    if constexpr (!kContiguous) {
+      if (count == L::width && is_soa_batch(stride)) {
+        for (int k = 0; k < 9; ++k) L::store(R.a[k], data + first + entry_offset(stride, k));
+        return;
+      }
     }
+    scatter_block<L, kContiguous>(R, data, stride, first, count);
   }
-  scatter_block<L, kContiguous>(R, data, stride, first, count);
 }
 
 inline bool is_contiguous_batch(const int64_t s[3]) { return s[0] == 9 && s[1] == 3 && s[2] == 1; }

@@ -138,6 +138,22 @@ TORCHROT_INLINE typename L::Mask can_take(const CayleyStep<typename L::V>& step)
                      L::gt(norm2, V(std::numeric_limits<T>::min())));
 }
 
+// Applies `step` to the running lanes that can take it (`valid`, see
+// can_take) and counts it (iterations, attempt_steps); returns those lanes.
+// advance and advance_one_step both step through it, so their steps are the
+// same bit for bit.
+template <typename L>
+TORCHROT_INLINE typename L::Mask take_step(LaneState<L>& s, const CayleyStep<typename L::V>& step,
+                                           typename L::Mask valid) {
+  using V = typename L::V;
+  const typename L::Mask stepping = L::mask_and(s.running, valid);
+  s.R = select<L>(stepping, times(s.R, cayley_rotation(step)), s.R);
+  const V taken = L::select(stepping, V(1), V(0));
+  s.iterations = s.iterations + taken;
+  s.attempt_steps = s.attempt_steps + taken;
+  return stepping;
+}
+
 // Takes up to `budget` Cayley steps on the running lanes. One function per
 // lane type: GCC's clone specialised to one call site (IPA constant
 // propagation) and its inlining choices around it ran the AVX2 fits slower
@@ -162,11 +178,8 @@ template <typename L>
     }
     const CayleyStep<V> step = cayley_step(S, c);
     const Mask valid = can_take<L>(step);
-    const Mask stepping = L::mask_and(s.running, valid);
     const Mask stalled = L::mask_and(s.running, L::mask_not(valid));
-    s.R = select<L>(stepping, times(s.R, cayley_rotation(step)), s.R);
-    s.iterations = s.iterations + L::select(stepping, one, zero);
-    s.attempt_steps = s.attempt_steps + L::select(stepping, one, zero);
+    const Mask stepping = take_step<L>(s, step, valid);
     // An undamped step below eps: converged.
     const Mask undamped = L::mask_not(L::gt(c - t, V(Tol::undamped) * L::abs(t)));
     Mask finished = L::mask_and(stepping, L::mask_and(undamped, step.template smaller_than<L>(Tol::converged)));
@@ -211,10 +224,7 @@ TORCHROT_INLINE void advance_one_step(LaneState<L>& s, Variant variant) {
   using V = typename L::V;
   const Mat3<V> S = transpose_times(s.R, s.A);
   const CayleyStep<V> step = cayley_step(S, objective_estimate<L>(S, variant));
-  const typename L::Mask stepping = L::mask_and(s.running, can_take<L>(step));
-  s.R = select<L>(stepping, times(s.R, cayley_rotation(step)), s.R);
-  s.iterations = s.iterations + L::select(stepping, V(1), V(0));
-  s.attempt_steps = s.iterations;
+  take_step<L>(s, step, can_take<L>(step));
   s.running = L::all_false();
 }
 

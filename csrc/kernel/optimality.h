@@ -72,13 +72,19 @@ TORCHROT_INLINE WarmStartCheck<L> check_warm_start(const Mat3<typename L::V>& R)
   return check;
 }
 
-// The lanes whose warm start clean_warm_start returns as it is: finite
-// rotations deviating less than `clean`. (The operator's validation pass
-// counts the others, see FitOptions::init_known_clean.)
+// The lanes whose warm start is used at all: finite rotations.
+template <typename L>
+TORCHROT_INLINE typename L::Mask is_usable(const WarmStartCheck<L>& check) {
+  return L::mask_and(check.finite, L::mask_not(check.bad));
+}
+
+// The lanes whose warm start clean_warm_start returns as it is: usable and
+// deviating less than `clean`. (The operator's validation pass counts the
+// others, see FitOptions::init_known_clean.)
 template <typename L>
 TORCHROT_INLINE typename L::Mask used_as_is(const WarmStartCheck<L>& check, typename L::Scalar clean) {
   using V = typename L::V;
-  return L::mask_and(L::mask_and(check.finite, L::mask_not(check.bad)), L::lt(check.deviation2, V(clean * clean)));
+  return L::mask_and(is_usable<L>(check), L::lt(check.deviation2, V(clean * clean)));
 }
 
 // The warm start at the compute dtype's precision: lanes whose deviation is at
@@ -92,8 +98,7 @@ inline Mat3<typename L::V> clean_warm_start(const Mat3<typename L::V>& R0, const
                                            typename L::Scalar clean) {
   using V = typename L::V;
   const V clean2(clean * clean);
-  typename L::Mask rough = L::mask_and(L::mask_and(check.finite, L::mask_not(check.bad)),
-                                       L::mask_not(used_as_is<L>(check, clean)));
+  typename L::Mask rough = L::mask_and(is_usable<L>(check), L::mask_not(L::lt(check.deviation2, clean2)));
   Mat3<V> R = R0;
   Mat3<V> G = check.G;
   for (int k = 0; k < limits::kInitCleanSteps && L::any(rough); ++k) {
