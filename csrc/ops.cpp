@@ -392,7 +392,7 @@ TORCH_LIBRARY(torchrot, m) {
   // map gives the forward-mode tangent dR from dM.
   m.def("fit_rotation_backward(Tensor grad, Tensor R, Tensor M, " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor");
   // fit_rotation with its reverse-mode derivative recorded in C++
-  // (csrc/training.cpp): torchrot.fit_rotation's plain training call.
+  // (csrc/training.cpp): torchrot.fit_rotation's plain eager call.
   m.def(
       "_fit_rotation_autograd(Tensor M, Tensor? init, int? max_iter, str variant, float gradient_eps) -> Tensor");
   // Which CPU kernel object runs in the calling thread: "scalar", "default",

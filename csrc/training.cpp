@@ -1,11 +1,13 @@
 // The common training call's derivative in C++: torchrot::_fit_rotation_autograd.
 //
-// torchrot.fit_rotation calls this operator for plain reverse-mode calls (M
-// requires grad; no torch.func transform, forward AD, autocast or tracing):
-// the same derivative as the Python Autograd kernel of fit_rotation
+// torchrot.fit_rotation calls this operator for plain eager calls (a
+// float32/float64 tensor; no torch.func transform, forward AD or tracing),
+// with or without a derivative to record: where M requires grad, the same
+// derivative as the Python Autograd kernel of fit_rotation
 // (torchrot/_autograd.py), FitRotationFunction, whose Python forward, context
-// and backward cost several times the fit of a small batch. Every other mode
-// goes through that kernel. The derivative is the optimality-condition
+// and backward cost several times the fit of a small batch; otherwise the
+// kernel below autograd, without a Python context manager. Every other mode
+// goes through the Python kernel. The derivative is the optimality-condition
 // tangent of csrc/kernel/rotation_gradient.h, the operator
 // torchrot::fit_rotation_backward.
 // torch's autograd headers use C++20 bit-field initialisers (a warning in C++17).
@@ -79,9 +81,16 @@ struct FitRotationAutograd : public torch::autograd::Function<FitRotationAutogra
   }
 };
 
+// With nothing to record (grad mode off, or M not requiring grad: init gets
+// no gradient) straight to the device kernel, without the autograd node that
+// Function::apply builds even then.
 at::Tensor fit_rotation_autograd(const at::Tensor& M, const std::optional<at::Tensor>& init,
                                  std::optional<int64_t> max_iter, c10::string_view variant, double gradient_eps) {
-  return FitRotationAutograd::apply(M, init, max_iter, variant, gradient_eps);
+  if (at::GradMode::is_enabled() && M.requires_grad()) {
+    return FitRotationAutograd::apply(M, init, max_iter, variant, gradient_eps);
+  }
+  at::AutoDispatchBelowAutograd below;
+  return call_fit_rotation(M, init, max_iter, variant, gradient_eps);
 }
 
 }  // namespace

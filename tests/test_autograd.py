@@ -399,6 +399,21 @@ def test_training_call_records_in_cpp():
                           (M.double().requires_grad_(), init.double(), None, "conservative", 1e-6))
 
 
+def test_eager_call_without_derivative_records_nothing():
+    """The plain eager call with nothing to record (M not requiring grad, also
+    with an init that does; or grad mode off) runs the kernel through the same
+    C++ operator and returns a result without autograd history, equal bit for
+    bit to the operator's."""
+    M, init = make_warm_start("warm", 11, seed=7, dtype=torch.float32)
+    expected = op.fit_rotation(M, init, None, "conservative", 1e-6)
+    cases = [(M, init.clone().requires_grad_(), True), (M.clone().requires_grad_(), init, False)]
+    for M_in, init_in, grad_mode in cases:
+        with torch.set_grad_enabled(grad_mode):
+            R = torchrot.fit_rotation(M_in, init_in)
+        assert R.grad_fn is None and not R.requires_grad
+        assert torch.equal(R, expected)
+
+
 def test_op_level_autograd_uses_gradient_eps():
     M = torch.diag(torch.tensor([2.0, 1.0, -1.0], dtype=torch.float64)).requires_grad_()
     G = torch.ones(3, 3, dtype=torch.float64)

@@ -27,10 +27,10 @@ from torchrot.reference import fit_rotation_backward_reference, fit_rotation_ref
 
 _OTHER_DEVICES = ("cuda", "xpu", "mps")
 
-# The operator of the plain training call, bound once (a lookup through
-# torch.ops costs about a microsecond a call), and the dtypes it takes.
+# The operator of plain eager calls, bound once (a lookup through torch.ops
+# costs about a microsecond a call), and the dtypes it takes.
 _fit_rotation_autograd = torch.ops.torchrot._fit_rotation_autograd.default
-_TRAINING_DTYPES = (torch.float32, torch.float64)
+_EAGER_DTYPES = (torch.float32, torch.float64)
 
 
 class FitInfo(NamedTuple):
@@ -119,12 +119,13 @@ def fit_rotation(
     """
     compiling = torch.compiler.is_compiling()
     _check_call(M, init, max_iter, variant, gradient_eps, out, compiling)
-    if out is None and _plain_reverse_mode(M, compiling):
-        # The common training call: the operator's reverse-mode derivative,
-        # recorded in C++ (csrc/training.cpp) instead of by the Python
-        # Autograd kernel, which costs several times a small fit. Tested
-        # first, with the fewest Python operations: a small batch's fit costs
-        # about as much as them.
+    if out is None and _plain_eager(M, compiling):
+        # The common call, in training or not: one C++ operator that runs the
+        # kernel and, where M requires grad, records the reverse-mode
+        # derivative (csrc/training.cpp), instead of the Python Autograd
+        # kernel or a Python context manager, which cost several times a
+        # small fit. Tested first, with the fewest Python operations: a small
+        # batch's fit costs about as much as them.
         return _fit_rotation_autograd(M, init, max_iter, variant, gradient_eps)
     differentiable = _needs_derivative(M)
     if out is not None:
@@ -178,18 +179,18 @@ def _check_call(M, init, max_iter, variant, gradient_eps, out=None, compiling: b
         check_gradient_eps(gradient_eps)
 
 
-def _plain_reverse_mode(M: torch.Tensor, compiling: bool) -> bool:
-    """Whether a call records a reverse-mode derivative only, on a plain
-    float32/float64 tensor: M requires grad with grad mode on, and no
-    torch.func level, forward AD, tracing (``compiling``) or reduced precision
-    (autocast casts those)."""
+def _plain_eager(M: torch.Tensor, compiling: bool) -> bool:
+    """Whether a call can run as torchrot::_fit_rotation_autograd: eager
+    (not ``compiling``), on a plain float32/float64 tensor, with no torch.func
+    level and no forward AD (autocast casts reduced precision, and the other
+    modes record their derivatives in the operator's Python Autograd kernel).
+    A derivative, if any, is then a reverse-mode one in M, which that
+    operator records where M requires grad (none flows to init)."""
     return (
         type(M) is torch.Tensor
-        and M.requires_grad
         and not compiling
-        and torch.is_grad_enabled()
         and forward_ad._current_level < 0
-        and M.dtype in _TRAINING_DTYPES
+        and M.dtype in _EAGER_DTYPES
         and not torch._C._are_functorch_transforms_active()
     )
 

@@ -102,9 +102,9 @@ def as_matrices(M: torch.Tensor) -> torch.Tensor:
     if not isinstance(M, torch.Tensor):
         raise TypeError(f"RotationFit: M must be a torch.Tensor, got {type(M).__name__}")
     shape = M.shape
-    if shape[-2:] == (3, 3):
+    if len(shape) >= 2 and shape[-1] == 3 and shape[-2] == 3:  # (the cheapest test: a layer's fixed cost)
         return M
-    if shape[-1:] == (9,):
+    if len(shape) >= 1 and shape[-1] == 9:
         return M.unflatten(-1, (3, 3))
     raise ValueError(f"RotationFit: M must have shape (..., 3, 3) or (..., 9), got {list(M.shape)}")
 
