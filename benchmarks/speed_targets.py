@@ -6,7 +6,7 @@ capsule, ~1e6 matrices, cached in ~/.cache/torchrot) with their previous
 rotations as warm starts, timed interleaved, median of ``--rounds`` rounds:
 ``copy_`` of M into a preallocated tensor, the one-step update on
 structure-of-arrays views (the paper's layout, ``torchrot.testing.soa_view``),
-on contiguous (N, 3, 3) tensors (``out=`` and in place) and the converged fit
+on contiguous (N, 3, 3) tensors (``out=``, in place and into a new output) and the converged fit
 from the warm start (exact: its failures against float64 SVD are counted).
 Part 2: the converged cold fit on uniform [0, 1] matrices (N = 1e5) against
 ``torch.linalg.svd`` special Procrustes. Part 3: ``torchrot.nn.RotationFit``
@@ -60,6 +60,7 @@ def main() -> None:
         "one-step, SoA views, out=": lambda: torchrot.fit_rotation(M_soa, init_soa, max_iter=1, out=out_soa),
         "one-step, contiguous, out=": lambda: torchrot.fit_rotation(M, init, max_iter=1, out=out),
         "one-step, contiguous, in place (out=init)": lambda: torchrot.fit_rotation(M, R, max_iter=1, out=R),
+        "one-step, contiguous, new output": lambda: torchrot.fit_rotation(M, init, max_iter=1),
         "converged from the warm start, contiguous": lambda: torchrot.fit_rotation(M, init, out=out),
         "converged from the warm start, SoA views": lambda: torchrot.fit_rotation(M_soa, init_soa, out=out_soa),
     }

@@ -17,6 +17,7 @@
 #include <utility>
 #include <vector>
 
+#include "cpu/huge_pages.h"
 #include "fit_rotation.h"
 #include "limits.h"
 
@@ -200,10 +201,16 @@ bool has_soa_layout(const at::Tensor& t) {
 // A new result of `t`'s shape: in t's layout where that is structure of
 // arrays (so solvers that assemble their matrices that way keep it, and the
 // kernels store plain vectors), contiguous otherwise. The fake kernels
-// (torchrot/_ops.py, _empty_result) make the same choice.
+// (torchrot/_ops.py, _empty_result) make the same choice. The kernel fills it
+// right after: on huge pages where it is large (cpu/huge_pages.h).
 at::Tensor new_result(const at::Tensor& t) {
-  if (has_soa_layout(t)) return at::empty_strided(t.sizes(), t.strides(), t.options());
-  return at::empty(t.sizes(), t.options().memory_format(at::MemoryFormat::Contiguous));
+  if (has_soa_layout(t)) return cpu::advise_huge_pages(at::empty_strided(t.sizes(), t.strides(), t.options()));
+  return cpu::advise_huge_pages(at::empty(t.sizes(), t.options().memory_format(at::MemoryFormat::Contiguous)));
+}
+
+// A contiguous (n, 3, 3) buffer for the kernel to fill, of dtype `compute`.
+at::Tensor new_kernel_buffer(int64_t n, const at::Tensor& like, at::ScalarType compute) {
+  return cpu::advise_huge_pages(at::empty({n, 3, 3}, like.options().dtype(compute)));
 }
 
 MatrixBatch contiguous_view(const at::Tensor& contiguous) {
@@ -286,7 +293,7 @@ void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out,
   std::optional<MatrixBatch> out_view;
   if (!reduced && !through_temporary) out_view = batch_view(out, out.sizes(), out.strides(), n);
   if (!out_view) {
-    out_keep = at::empty({n, 3, 3}, M.options().dtype(compute));
+    out_keep = new_kernel_buffer(n, M, compute);
     out_view = contiguous_view(out_keep);
   }
   const int64_t bad_inits = fit_rotation_cpu(compute, n, m_view, init.defined() ? &init_view : nullptr,
@@ -365,7 +372,7 @@ at::Tensor fit_rotation_backward_cpu_op(const at::Tensor& grad, const at::Tensor
                          gradient_eps);
     return out;
   }
-  at::Tensor out_float = at::empty({n, 3, 3}, R.options().dtype(compute));
+  at::Tensor out_float = new_kernel_buffer(n, R, compute);
   rotation_tangent_cpu(compute, n, grad_view, r_view, m_view, contiguous_view(out_float), gradient_eps);
   out.copy_(out_float.view(R.sizes()));
   return out;

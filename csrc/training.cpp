@@ -1,4 +1,4 @@
-// The common training call's derivative in C++: torchrot::_fit_rotation_autograd.
+// Plain eager calls in C++, their derivative included: torchrot::_fit_rotation_autograd.
 //
 // torchrot.fit_rotation calls this operator for plain eager calls (a
 // float32/float64 tensor; no torch.func transform, forward AD or tracing),

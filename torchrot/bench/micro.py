@@ -208,7 +208,8 @@ def all_methods(isas: list[str] | None = None, variants: tuple[str, ...] = VARIA
     methods.append(Method("torchrot converged warm, SoA views", lambda M, init, out: torchrot.fit_rotation(
         M, init, out=out), "torchrot", "torchrot", "converged_warm", "conservative", layout="soa"))
     if first_touch:
-        # Without out=: every call allocates a new output and pays its first-touch page faults.
+        # Without out=: every call allocates a new output and pays its first-touch page faults
+        # (fewer where it is on transparent huge pages, see csrc/cpu/huge_pages.h).
         methods.append(Method("torchrot 1-step warm, conservative, new output",
                               lambda M, init, out: torchrot.fit_rotation(M, init, max_iter=1), "torchrot",
                               "torchrot", "one_step_new_output", "conservative", warm_only=True))
