@@ -1,8 +1,24 @@
 // Makes the shared library importable as torchrot._C. Importing it runs the
-// static initialisers of ops.cpp, which register torch.ops.torchrot.*. Its one
-// Python function, constants(), hands the limits of limits.h to the Python
-// layers (torchrot/_limits.py), so that they are defined once.
+// static initialisers of ops.cpp, which register torch.ops.torchrot.*. Its
+// Python functions: constants() hands the limits of limits.h to the Python
+// layers (torchrot/_limits.py), so that they are defined once;
+// fit_rotation_eager() is the plain eager call of torchrot.fit_rotation.
 #include <Python.h>
+
+// torch's autograd headers use C++20 bit-field initialisers (a warning in C++17).
+#pragma GCC diagnostic push
+#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12
+#pragma GCC diagnostic ignored "-Wc++20-extensions"
+#endif
+#include <ATen/PythonTorchFunctionTLS.h>
+#include <ATen/core/dispatch/Dispatcher.h>
+#include <torch/csrc/Exceptions.h>
+#include <torch/csrc/autograd/python_variable.h>
+#include <pybind11/pybind11.h>
+#pragma GCC diagnostic pop
+
+#include <cstdint>
+#include <optional>
 
 #include "limits.h"
 
@@ -38,8 +54,55 @@ PyObject* constants(PyObject*, PyObject*) {
   return dict;
 }
 
+// fit_rotation_eager(M, init, max_iter, variant, gradient_eps): the operator
+// torchrot::_fit_rotation_autograd (csrc/training.cpp), called through the
+// dispatcher as torch.ops calls it (the GIL released around it), but without
+// torch.ops' Python argument parsing and boxing, which cost more than half of
+// a one-matrix call on this project's VM (12.2 against 5.7 us). The arguments
+// are the operator's, already type-checked by torchrot.fit_rotation. Returns NotImplemented, before doing anything, where
+// torch.ops would do more than call the operator or where an argument is not
+// of the plain type it converts: a tensor subclass (its __torch_function__),
+// an active torch function mode, max_iter beyond int64; the caller then calls
+// the operator through torch.ops, which handles or rejects them.
+PyObject* fit_rotation_eager(PyObject*, PyObject* const* args, Py_ssize_t nargs) {
+  HANDLE_TH_ERRORS
+  if (nargs != 5 || !THPVariable_CheckExact(args[0]) || (args[1] != Py_None && !THPVariable_CheckExact(args[1])) ||
+      (args[2] != Py_None && !PyLong_CheckExact(args[2])) || !PyUnicode_Check(args[3]) ||
+      at::impl::torch_function_mode_enabled()) {
+    Py_RETURN_NOTIMPLEMENTED;
+  }
+  std::optional<int64_t> max_iter;
+  if (args[2] != Py_None) {
+    int overflow = 0;
+    const long long value = PyLong_AsLongLongAndOverflow(args[2], &overflow);
+    if (overflow != 0) Py_RETURN_NOTIMPLEMENTED;
+    max_iter = value;
+  }
+  Py_ssize_t variant_size = 0;
+  const char* variant = PyUnicode_AsUTF8AndSize(args[3], &variant_size);
+  if (variant == nullptr) return nullptr;
+  const double gradient_eps = PyFloat_AsDouble(args[4]);
+  if (gradient_eps == -1.0 && PyErr_Occurred()) return nullptr;
+  const at::Tensor M = THPVariable_Unpack(args[0]);  // own references while the GIL is released
+  std::optional<at::Tensor> init;
+  if (args[1] != Py_None) init = THPVariable_Unpack(args[1]);
+  static auto op = c10::Dispatcher::singleton()
+                       .findSchemaOrThrow("torchrot::_fit_rotation_autograd", "")
+                       .typed<at::Tensor(const at::Tensor&, const std::optional<at::Tensor>&,
+                                         std::optional<int64_t>, c10::string_view, double)>();
+  at::Tensor R;
+  {
+    pybind11::gil_scoped_release no_gil;
+    R = op.call(M, init, max_iter, c10::string_view(variant, static_cast<size_t>(variant_size)), gradient_eps);
+  }
+  return THPVariable_Wrap(std::move(R));
+  END_HANDLE_TH_ERRORS
+}
+
 PyMethodDef methods[] = {
     {"constants", constants, METH_NOARGS, "The limits, defaults and tolerances of csrc/limits.h, by name."},
+    {"fit_rotation_eager", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(fit_rotation_eager)),
+     METH_FASTCALL, "torchrot::_fit_rotation_autograd for torchrot.fit_rotation's plain eager call."},
     {nullptr, nullptr, 0, nullptr},
 };
 

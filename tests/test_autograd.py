@@ -414,6 +414,41 @@ def test_eager_call_without_derivative_records_nothing():
         assert torch.equal(R, expected)
 
 
+def test_eager_entry_leaves_subclasses_and_modes_to_torch_ops():
+    """The plain eager call's direct entry (torchrot._C.fit_rotation_eager)
+    declines, before doing anything, what torch.ops handles: a tensor
+    subclass's __torch_function__, an active torch function mode, max_iter
+    beyond int64. fit_rotation then calls the operator through torch.ops: the
+    mode sees that call and the subclass survives; the results are the same."""
+    M, init = make_warm_start("warm", 7, seed=8, dtype=torch.float32)
+    expected = op.fit_rotation(M, init, None, "conservative", GRADIENT_EPS)
+    entry = torchrot._C.fit_rotation_eager
+    assert torch.equal(entry(M, init, None, "conservative", GRADIENT_EPS), expected)
+
+    class Sub(torch.Tensor):
+        pass
+
+    assert entry(M.as_subclass(Sub), init, None, "conservative", GRADIENT_EPS) is NotImplemented
+    assert entry(M, init.as_subclass(Sub), None, "conservative", GRADIENT_EPS) is NotImplemented
+    assert entry(M, init, 2**63, "conservative", GRADIENT_EPS) is NotImplemented
+    R = torchrot.fit_rotation(M.as_subclass(Sub), init)
+    assert type(R) is Sub and torch.equal(R.as_subclass(torch.Tensor), expected)
+
+    class Recorder(torch.overrides.TorchFunctionMode):
+        def __init__(self):
+            super().__init__()
+            self.calls = []
+
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            self.calls.append(func)
+            return func(*args, **(kwargs or {}))
+
+    with Recorder() as mode:
+        assert entry(M, init, None, "conservative", GRADIENT_EPS) is NotImplemented
+        R = torchrot.fit_rotation(M, init)
+    assert op._fit_rotation_autograd.default in mode.calls and torch.equal(R, expected)
+
+
 def test_op_level_autograd_uses_gradient_eps():
     M = torch.diag(torch.tensor([2.0, 1.0, -1.0], dtype=torch.float64)).requires_grad_()
     G = torch.ones(3, 3, dtype=torch.float64)

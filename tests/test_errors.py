@@ -53,6 +53,7 @@ CASES = {
     "fit-max_iter-too-large": (lambda: torchrot.fit_rotation(M, max_iter=1001), ValueError,
                                r"max_iter.*<= 1000"),
     "op-max_iter-huge": (lambda: op.fit_rotation(M, None, 2**62, "newton"), ValueError, r"max_iter.*<= 1000"),
+    "fit-max_iter-enormous": (lambda: torchrot.fit_rotation(M, max_iter=2**70), ValueError, r"max_iter.*<= 1000"),
     "fit-max_iter-float": (lambda: torchrot.fit_rotation(M, max_iter=2.0), TypeError, r"max_iter.*int"),
     "fit-max_iter-bool": (lambda: torchrot.fit_rotation(M, max_iter=True), TypeError, r"max_iter.*int"),
     "reference-max_iter-too-large": (lambda: torchrot.fit_rotation_reference(M, max_iter=10**6), ValueError,

@@ -48,17 +48,24 @@ def check_device_dtype(t: torch.Tensor, name: str, ref: torch.Tensor, ref_name: 
 
 
 def check_max_iter_type(max_iter) -> None:
+    """The type of max_iter, and that the operator's int64 holds it (a larger
+    int raises check_max_iter's ValueError rather than a schema error)."""
     if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int)):
         raise TypeError(f"{OP_NAME}: max_iter must be None or an int >= 1, got {max_iter!r}")  # bool: an int to the schema
+    if max_iter is not None and not -(2**63) <= max_iter < 2**63:
+        _raise_max_iter_range(max_iter)
 
 
 def check_max_iter(max_iter) -> None:
     check_max_iter_type(max_iter)
     if max_iter is not None and not 1 <= max_iter <= MAX_ITER:
-        raise ValueError(
-            f"{OP_NAME}: max_iter must be None (iterate to convergence) or an int >= 1 and <= {MAX_ITER},"
-            f" got {max_iter}"
-        )
+        _raise_max_iter_range(max_iter)
+
+
+def _raise_max_iter_range(max_iter: int) -> None:
+    raise ValueError(
+        f"{OP_NAME}: max_iter must be None (iterate to convergence) or an int >= 1 and <= {MAX_ITER}, got {max_iter}"
+    )
 
 
 def check_variant_type(variant) -> None:

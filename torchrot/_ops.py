@@ -12,6 +12,7 @@ import torch
 from torch.autograd import forward_ad
 
 import torchrot._autograd  # noqa: F401  (registers the operators' derivatives)
+from torchrot import _C
 from torchrot._checks import (
     check_all,
     check_backward,
@@ -28,8 +29,11 @@ from torchrot.reference import fit_rotation_backward_reference, fit_rotation_ref
 _OTHER_DEVICES = ("cuda", "xpu", "mps")
 
 # The operator of plain eager calls, bound once (a lookup through torch.ops
-# costs about a microsecond a call), and the dtypes it takes.
+# costs about a microsecond a call), its direct entry (csrc/module.cpp:
+# without torch.ops' argument parsing; NotImplemented where torch.ops is
+# needed) and the dtypes it takes.
 _fit_rotation_autograd = torch.ops.torchrot._fit_rotation_autograd.default
+_fit_rotation_eager = _C.fit_rotation_eager
 _EAGER_DTYPES = (torch.float32, torch.float64)
 
 
@@ -126,7 +130,10 @@ def fit_rotation(
         # kernel or a Python context manager, which cost several times a
         # small fit. Tested first, with the fewest Python operations: a small
         # batch's fit costs about as much as them.
-        return _fit_rotation_autograd(M, init, max_iter, variant, gradient_eps)
+        R = _fit_rotation_eager(M, init, max_iter, variant, gradient_eps)
+        if R is NotImplemented:  # a tensor subclass, a torch function mode, ...: through torch.ops
+            R = _fit_rotation_autograd(M, init, max_iter, variant, gradient_eps)
+        return R
     differentiable = _needs_derivative(M)
     if out is not None:
         if differentiable:
