@@ -416,3 +416,21 @@ def test_max_iter_caps_iterations(dtype, variant, matrices):
         _, iterations, status = torchrot.fit_rotation_info(M, max_iter=k, variant=variant)
         assert (iterations <= k).all() and (iterations >= 1).all()
         assert (status == 0).all()  # no fallback with a step limit
+
+
+# Found by .ci/fuzz (seed 287567313, test_batched_recipes[float32], newton,
+# cold): three equal singular values, det M < 0, perturbed by one float32 ulp
+# below the diagonal. The maximisers of the unperturbed M form a continuum;
+# the newton and conservative fits stop on it (8 steps, status 0, the maximum
+# check passed) 2.1e-6 |M|_F short of the maximum, above CRITERIA's 2e-6
+# (gershgorin runs into its fallback and is exact). Known, not yet fixed.
+NEAR_DEGENERATE_REFLECTION = [[-0.04649638012051582, -0.0, -0.0],
+                              [1.1920928955078125e-07, 0.04649638012051582, -0.0],
+                              [-0.0, 1.1920928955078125e-07, 0.04649638012051582]]
+
+
+@pytest.mark.xfail(strict=True, reason="known: stops on a near-flat ridge of maximisers 2.1e-6 |M|_F short")
+@pytest.mark.parametrize("variant", ["newton", "conservative"])
+def test_near_degenerate_reflection_reaches_the_maximum(variant, assert_meets_criteria):
+    M = torch.tensor([NEAR_DEGENERATE_REFLECTION], dtype=torch.float32)
+    assert_meets_criteria(torchrot.fit_rotation(M, variant=variant), M, torch.float32, "near-degenerate, det < 0")
