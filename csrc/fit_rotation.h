@@ -5,9 +5,16 @@
 #include <ATen/core/Tensor.h>
 
 #include <cstdint>
+#include <optional>
 #include <string>
 
 namespace torchrot {
+
+// The C++ signature of the schemas torchrot::fit_rotation and
+// torchrot::_fit_rotation_autograd (M, init, max_iter, variant, gradient_eps),
+// for typed dispatcher calls.
+using FitRotationSignature = at::Tensor(const at::Tensor&, const std::optional<at::Tensor>&, std::optional<int64_t>,
+                                        c10::string_view, double);
 
 // How the Cayley step estimates the maximal objective c (paper, Sec. 4.2).
 enum class Variant : int8_t {

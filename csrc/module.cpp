@@ -20,6 +20,8 @@
 #include <cstdint>
 #include <optional>
 
+#include "fit_rotation.h"
+
 #include "limits.h"
 
 namespace {
@@ -59,11 +61,12 @@ PyObject* constants(PyObject*, PyObject*) {
 // dispatcher as torch.ops calls it (the GIL released around it), but without
 // torch.ops' Python argument parsing and boxing, which cost more than half of
 // a one-matrix call on this project's VM (12.2 against 5.7 us). The arguments
-// are the operator's, already type-checked by torchrot.fit_rotation. Returns NotImplemented, before doing anything, where
-// torch.ops would do more than call the operator or where an argument is not
-// of the plain type it converts: a tensor subclass (its __torch_function__),
-// an active torch function mode, max_iter beyond int64; the caller then calls
-// the operator through torch.ops, which handles or rejects them.
+// are the operator's, already type-checked by torchrot.fit_rotation. Returns
+// NotImplemented, before doing anything, where torch.ops would do more than
+// call the operator or where an argument is not of the plain type it
+// converts: a tensor subclass (its __torch_function__), an active torch
+// function mode, max_iter beyond int64; the caller then calls the operator
+// through torch.ops, which handles or rejects them.
 PyObject* fit_rotation_eager(PyObject*, PyObject* const* args, Py_ssize_t nargs) {
   HANDLE_TH_ERRORS
   if (nargs != 5 || !THPVariable_CheckExact(args[0]) || (args[1] != Py_None && !THPVariable_CheckExact(args[1])) ||
@@ -88,8 +91,7 @@ PyObject* fit_rotation_eager(PyObject*, PyObject* const* args, Py_ssize_t nargs)
   if (args[1] != Py_None) init = THPVariable_Unpack(args[1]);
   static auto op = c10::Dispatcher::singleton()
                        .findSchemaOrThrow("torchrot::_fit_rotation_autograd", "")
-                       .typed<at::Tensor(const at::Tensor&, const std::optional<at::Tensor>&,
-                                         std::optional<int64_t>, c10::string_view, double)>();
+                       .typed<torchrot::FitRotationSignature>();
   at::Tensor R;
   {
     pybind11::gil_scoped_release no_gil;

@@ -23,6 +23,8 @@
 
 #include <optional>
 
+#include "fit_rotation.h"
+
 namespace torchrot {
 namespace {
 
@@ -33,8 +35,7 @@ at::Tensor call_fit_rotation(const at::Tensor& M, const std::optional<at::Tensor
                              std::optional<int64_t> max_iter, c10::string_view variant, double gradient_eps) {
   static auto op = c10::Dispatcher::singleton()
                        .findSchemaOrThrow("torchrot::fit_rotation", "")
-                       .typed<at::Tensor(const at::Tensor&, const std::optional<at::Tensor>&,
-                                         std::optional<int64_t>, c10::string_view, double)>();
+                       .typed<FitRotationSignature>();
   return op.call(M, init, max_iter, variant, gradient_eps);
 }
 
