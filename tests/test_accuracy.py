@@ -14,7 +14,7 @@ import torch
 
 import torchrot
 from torchrot._limits import CONVERGED_CAP, MAX_ESCAPES
-from torchrot.reference import cayley_rotation
+from torchrot.reference import cayley_rotation, fit_rotation_reference
 from torchrot.testing import (
     dtype_id,
     CRITERIA,
@@ -420,30 +420,42 @@ def test_max_iter_caps_iterations(dtype, variant, matrices):
 
 # Found by .ci/fuzz (seed 287567313, test_batched_recipes[float32], newton,
 # cold): three equal singular values, det M < 0, perturbed by one float32 ulp
-# below the diagonal. The maximisers of the unperturbed M form a continuum;
-# the newton and conservative fits stop on it (8 steps, status 0, the maximum
-# check passed) 2.1e-6 |M|_F short of the maximum, above CRITERIA's 2e-6
-# (gershgorin runs into its fallback and is exact). Known, not yet fixed.
+# below the diagonal. The maximisers of the unperturbed M form a continuum, and
+# at the saddles near it two eigenvalues of tr(S) I - sym(S) are ~1e-6: the
+# maximum check's leading minors (Sylvester) let one pass on float32 rounding
+# (8 steps, status 0, 2.1e-6 |M|_F short of the maximum); the pivoted check
+# (optimality.h) rejects it.
 NEAR_DEGENERATE_REFLECTION = [[-0.04649638012051582, -0.0, -0.0],
                               [1.1920928955078125e-07, 0.04649638012051582, -0.0],
                               [-0.0, 1.1920928955078125e-07, 0.04649638012051582]]
 
-
-@pytest.mark.xfail(strict=True, reason="known: stops on a near-flat ridge of maximisers 2.1e-6 |M|_F short")
-@pytest.mark.parametrize("variant", ["newton", "conservative"])
-def test_near_degenerate_reflection_reaches_the_maximum(variant, assert_meets_criteria):
-    M = torch.tensor([NEAR_DEGENERATE_REFLECTION], dtype=torch.float32)
-    assert_meets_criteria(torchrot.fit_rotation(M, variant=variant), M, torch.float32, "near-degenerate, det < 0")
-
-
-# Found by .ci/fuzz (seed 309661663, test_batched_recipes[float32], cold):
-# variant="newton" in converged mode stops after one step, status 0, 0.396
-# |M|_F short of the maximum (the conservative default is exact); the same
-# for this matrix scaled into the subnormal range. Known, not yet fixed.
+# Found by .ci/fuzz (seed 309661663, test_batched_recipes[float32], cold): at
+# the start R = diag(-1, -1, 1), newton's H = S + S^T - 2 tr(S) I is singular
+# and the gradient m = (1, 0, -1) / 6 lies in its range, so Cramer's rule gives
+# 0 / 0 and a step of rounding noise, which counted as converged (1 step,
+# status 0, 0.396 |M|_F short). Such a step is stalled (cayley.h,
+# singular_step): the fallback decides. Also scaled into float32 subnormals.
 NEWTON_WRONG_MAXIMUM = [[-3.0, -6.0, -2.0], [0.0, -2.0, 0.0], [2.0, 6.0, 3.0]]
 
 
-@pytest.mark.xfail(strict=True, reason="known: the newton variant accepts a non-maximal fixed point here")
-def test_newton_converged_fit_reaches_the_maximum(assert_meets_criteria):
-    M = torch.tensor([NEWTON_WRONG_MAXIMUM], dtype=torch.float32)
-    assert_meets_criteria(torchrot.fit_rotation(M, variant="newton"), M, torch.float32, "newton, cold")
+@pytest.mark.parametrize("case", ["near_degenerate_reflection", "newton_singular_start", "subnormal"])
+@pytest.mark.parametrize("fit", ["kernel", "reference"])
+def test_fuzz_findings_reach_the_maximum(case, fit, dtype, variant, assert_meets_criteria):
+    matrix = NEAR_DEGENERATE_REFLECTION if case == "near_degenerate_reflection" else NEWTON_WRONG_MAXIMUM
+    M = torch.tensor([matrix], dtype=dtype)
+    if case == "subnormal":
+        M = M * torch.finfo(dtype).tiny * 2.0**-10
+        assert 0 < M.abs().max() < torch.finfo(dtype).tiny
+    fitter = torchrot.fit_rotation if fit == "kernel" else fit_rotation_reference
+    assert_meets_criteria(fitter(M, variant=variant), M, dtype, f"{case}, {variant}, cold")
+
+
+def test_singular_newton_step_is_not_convergence():
+    """The newton step at the singular start stalls: the fallback decides (status 1), in the
+    kernel and in the generic path alike; with a step limit the lane stops there (status 0)."""
+    M = torch.tensor([NEWTON_WRONG_MAXIMUM], dtype=torch.float64)
+    for fit in (torchrot.fit_rotation_info, lambda M, **kw: fit_rotation_reference(M, return_info=True, **kw)):
+        _, iterations, status = fit(M, variant="newton")
+        assert status.tolist() == [1]
+        _, iterations, status = fit(M, variant="newton", max_iter=5)
+        assert iterations.tolist() == [1] and status.tolist() == [0]

@@ -165,9 +165,7 @@ def _objective_estimate(S, t, mm, variant):
 
 
 def _cayley_step(S, t, m, c):
-    shift = t + c
-    h00, h11, h22 = 2 * S[0] - shift, 2 * S[4] - shift, 2 * S[8] - shift
-    h01, h02, h12 = S[1] + S[3], S[2] + S[6], S[5] + S[7]
+    h00, h11, h22, h01, h02, h12 = _system(S, t, c)
     c00 = h11 * h22 - h12 * h12
     c01 = h02 * h12 - h01 * h22
     c02 = h01 * h12 - h02 * h11
@@ -179,6 +177,19 @@ def _cayley_step(S, t, m, c):
     w1 = c01 * m[0] + c11 * m[1] + c12 * m[2]
     w2 = c02 * m[0] + c12 * m[1] + c22 * m[2]
     return (w0, w1, w2), d, w0 * w0 + w1 * w1 + w2 * w2, d * d
+
+
+def _system(S, t, c):
+    """The entries h00, h11, h22, h01, h02, h12 of Algorithm 2's H = S + S^T - (t + c) I."""
+    shift = t + c
+    return 2 * S[0] - shift, 2 * S[4] - shift, 2 * S[8] - shift, S[1] + S[3], S[2] + S[6], S[5] + S[7]
+
+
+def _singular_step(S, t, mm, c, tol):
+    """singular_step (cayley.h): |m|^2 >= tol |H|_F^2, a step small only by Cramer's 0 / 0."""
+    h00, h11, h22, h01, h02, h12 = _system(S, t, c)
+    hh = h00 * h00 + h11 * h11 + h22 * h22 + 2 * (h01 * h01 + h02 * h02 + h12 * h12)
+    return ~(mm < tol * hh)
 
 
 def _cayley_rotation(w, d, ww, dd):
@@ -197,12 +208,26 @@ def _cayley_rotation(w, d, ww, dd):
 
 
 def _is_maximum(S, slack):
+    """is_maximum (optimality.h): P = tr(S) I - sym(S) + slack I positive definite, by
+    elimination on P's largest diagonal entry and the 2x2 Schur complement."""
     t = S[0] + S[4] + S[8] + slack
     p00, p11, p22 = t - S[0], t - S[4], t - S[8]
     p01, p02, p12 = -0.5 * (S[1] + S[3]), -0.5 * (S[2] + S[6]), -0.5 * (S[5] + S[7])
-    minor2 = p00 * p11 - p01 * p01
-    det = p00 * (p11 * p22 - p12 * p12) - p01 * (p01 * p22 - p12 * p02) + p02 * (p01 * p12 - p11 * p02)
-    return (p00 > 0) & (minor2 > 0) & (det > 0)
+    pivot0 = ~(p00 < p11) & ~(p00 < p22)
+    pivot1 = ~pivot0 & ~(p11 < p22)
+
+    def pick(if0, if1, if2):
+        return torch.where(pivot0, if0, torch.where(pivot1, if1, if2))
+
+    pivot = pick(p00, p11, p22)
+    paa, pbb, pab = pick(p11, p00, p00), pick(p22, p22, p11), pick(p12, p02, p01)
+    pai, pbi = pick(p01, p01, p02), pick(p02, p12, p12)
+    positive_pivot = pivot > 0
+    inv = 1 / torch.where(positive_pivot, pivot, 1.0)
+    qaa = paa - pai * pai * inv
+    qbb = pbb - pbi * pbi * inv
+    qab = pab - pai * pbi * inv
+    return positive_pivot & (qaa > 0) & (qaa * qbb - qab * qab > 0)
 
 
 def _saddle_escape_rotation(S, squarings=4):
@@ -408,6 +433,9 @@ def _step(st, variant, converge, cap, eps):
     attempt = attempt + step_i
     undamped = ~(c - t > undamped_tol * t.abs())
     finished = stepping & undamped & (ww < eps * dd)
+    singular = finished & _singular_step(S, t, mm, c, eps)
+    stalled = stalled | singular
+    finished = finished & ~singular
     pending = st["pending"]
     if converge:
         switch_now = (ww < ESTIMATE_SWITCH * dd) | (attempt >= GERSHGORIN_STEPS)

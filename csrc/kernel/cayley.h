@@ -75,19 +75,32 @@ TORCHROT_INLINE typename L::V objective_estimate(const Mat3<typename L::V>& S, V
   return L::sqrt(g_sym * g_sym + mm);  // Eqs. 26-27
 }
 
+// The symmetric system matrix H = S + S^T - (tr S + c) I of Algorithm 2.
+template <typename V>
+struct StepSystem {
+  V h00, h11, h22, h01, h02, h12;
+  TORCHROT_INLINE StepSystem(const Mat3<V>& S, V c) {
+    const V shift = trace(S) + c;
+    h00 = V(2) * S(0, 0) - shift;
+    h11 = V(2) * S(1, 1) - shift;
+    h22 = V(2) * S(2, 2) - shift;
+    h01 = S(0, 1) + S(1, 0);
+    h02 = S(0, 2) + S(2, 0);
+    h12 = S(1, 2) + S(2, 1);
+  }
+  TORCHROT_INLINE V frobenius2() const {
+    return h00 * h00 + h11 * h11 + h22 * h22 + V(2) * (h01 * h01 + h02 * h02 + h12 * h12);
+  }
+};
+
 // Algorithm 2 for a given c: (S + S^T - (t + c) I) z = -m by Cramer's rule
 // (Eqs. 30-33), written with the symmetric adjugate of H.
 template <typename V>
 TORCHROT_INLINE CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
   V m[3];
   skew_vector(S, m);
-  const V shift = trace(S) + c;
-  const V h00 = V(2) * S(0, 0) - shift;
-  const V h11 = V(2) * S(1, 1) - shift;
-  const V h22 = V(2) * S(2, 2) - shift;
-  const V h01 = S(0, 1) + S(1, 0);
-  const V h02 = S(0, 2) + S(2, 0);
-  const V h12 = S(1, 2) + S(2, 1);
+  const StepSystem<V> H(S, c);
+  const V h00 = H.h00, h11 = H.h11, h22 = H.h22, h01 = H.h01, h02 = H.h02, h12 = H.h12;
 
   const V c00 = h11 * h22 - h12 * h12;
   const V c01 = h02 * h12 - h01 * h22;
@@ -104,6 +117,24 @@ TORCHROT_INLINE CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
   step.ww = step.w[0] * step.w[0] + step.w[1] * step.w[1] + step.w[2] * step.w[2];
   step.dd = step.d * step.d;
   return step;
+}
+
+// Whether the system of cayley_step(S, c) is singular with the gradient m in
+// its range, to working precision: |m|^2 >= tol |H|_F^2. A step z = -H^-1 m
+// with z.z < tol satisfies |m|^2 = |H z|^2 <= |H|_F^2 z.z < tol |H|_F^2, so a
+// small step never meets this unless Cramer's rule gave 0 / 0: H singular and
+// the system consistent, w = adj(H) m and det H both zero up to rounding, a
+// tiny ratio w.w / d^2 at a point that is not stationary (newton's H is
+// singular wherever tr(S) is an eigenvalue of S + S^T - tr(S) I).
+template <typename L>
+TORCHROT_INLINE typename L::Mask singular_step(const Mat3<typename L::V>& S, typename L::V c,
+                                               typename L::Scalar tol) {
+  using V = typename L::V;
+  V m[3];
+  skew_vector(S, m);
+  const V hh = StepSystem<V>(S, c).frobenius2();
+  const V mm = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
+  return L::mask_not(L::lt(mm, V(tol) * hh));
 }
 
 // The rotation with Cayley parameters z = -w / d (Eq. 10), multiplied

@@ -178,11 +178,18 @@ template <typename L>
     }
     const CayleyStep<V> step = cayley_step(S, c);
     const Mask valid = can_take<L>(step);
-    const Mask stalled = L::mask_and(s.running, L::mask_not(valid));
+    Mask stalled = L::mask_and(s.running, L::mask_not(valid));
     const Mask stepping = take_step<L>(s, step, valid);
-    // An undamped step below eps: converged.
+    // An undamped step below eps: converged, unless it is small only because
+    // H is singular (singular_step): that lane is stalled like one that
+    // cannot step at all.
     const Mask undamped = L::mask_not(L::gt(c - t, V(Tol::undamped) * L::abs(t)));
     Mask finished = L::mask_and(stepping, L::mask_and(undamped, step.template smaller_than<L>(Tol::converged)));
+    if (L::any(finished)) {
+      const Mask singular = L::mask_and(finished, singular_step<L>(S, c, Tol::converged));
+      stalled = L::mask_or(stalled, singular);
+      finished = L::mask_and(finished, L::mask_not(singular));
+    }
 
     if (converge) {
       const Mask switch_now = L::mask_or(step.template smaller_than<L>(Tol::estimate_switch),

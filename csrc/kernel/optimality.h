@@ -14,22 +14,44 @@ namespace {
 
 // Second-order check at a fixed point S = R^T M (S symmetric): R is the global
 // maximum iff the two smallest eigenvalues of sym(S) sum to >= 0, i.e. iff
-// tr(S) I - sym(S) is positive semidefinite (Sec. 3, analysis of g_S). Other
-// fixed points are saddles or minima that a Newton-type iteration can reach.
-// Tested by Sylvester's criterion on tr(S) I - sym(S) + slack I; a fixed point
-// that passes falls short of the maximum by at most 2 slack.
+// P = tr(S) I - sym(S) is positive semidefinite (Sec. 3, analysis of g_S).
+// Other fixed points are saddles or minima that a Newton-type iteration can
+// reach. Tested on P + slack I; a fixed point that passes falls short of the
+// maximum by at most 2 slack (plus rounding of a few eps |P|).
+//
+// The test eliminates on P's largest diagonal entry and checks that the 2x2
+// Schur complement left is positive definite. Where two eigenvalues of P are
+// tiny (three nearly equal singular values, det M < 0: a near-flat ridge of
+// maximisers), Sylvester's leading minors are not usable: det P is the
+// product of those two tiny eigenvalues and of one of order 1, and its
+// float32 rounding (~eps |P|^3) decides its sign (a saddle 3.6e-6 short of
+// the maximum passed). The pivot here is at least tr(P) / 3, so the Schur
+// complement is P's restriction to its small eigenvalues, computed to
+// ~eps |P|, and its 2x2 determinant has the right sign.
 template <typename L>
 TORCHROT_INLINE typename L::Mask is_maximum(const Mat3<typename L::V>& S, typename L::Scalar slack) {
   using V = typename L::V;
+  using Mask = typename L::Mask;
   const V t = S(0, 0) + S(1, 1) + S(2, 2) + V(slack);
   const V p00 = t - S(0, 0), p11 = t - S(1, 1), p22 = t - S(2, 2);
   const V p01 = V(-0.5) * (S(0, 1) + S(1, 0));
   const V p02 = V(-0.5) * (S(0, 2) + S(2, 0));
   const V p12 = V(-0.5) * (S(1, 2) + S(2, 1));
-  const V minor2 = p00 * p11 - p01 * p01;
-  const V det = p00 * (p11 * p22 - p12 * p12) - p01 * (p01 * p22 - p12 * p02) + p02 * (p01 * p12 - p11 * p02);
+  // Pivot i (the first of equal largest diagonal entries) and the other two
+  // indices a < b: P_aa, P_bb, P_ab and the pivot's column P_ai, P_bi.
+  const Mask pivot0 = L::mask_and(L::mask_not(L::lt(p00, p11)), L::mask_not(L::lt(p00, p22)));
+  const Mask pivot1 = L::mask_and(L::mask_not(pivot0), L::mask_not(L::lt(p11, p22)));
+  const auto pick = [&](V if0, V if1, V if2) { return L::select(pivot0, if0, L::select(pivot1, if1, if2)); };
+  const V pivot = pick(p00, p11, p22);
+  const V paa = pick(p11, p00, p00), pbb = pick(p22, p22, p11), pab = pick(p12, p02, p01);
+  const V pai = pick(p01, p01, p02), pbi = pick(p02, p12, p12);
   const V zero(0);
-  return L::mask_and(L::gt(p00, zero), L::mask_and(L::gt(minor2, zero), L::gt(det, zero)));
+  const Mask positive_pivot = L::gt(pivot, zero);
+  const V inv = V(1) / L::select(positive_pivot, pivot, V(1));
+  const V qaa = paa - pai * pai * inv;
+  const V qbb = pbb - pbi * pbi * inv;
+  const V qab = pab - pai * pbi * inv;
+  return L::mask_and(L::mask_and(positive_pivot, L::gt(qaa, zero)), L::gt(qaa * qbb - qab * qab, zero));
 }
 
 // |G - I|_F^2 for the Gram matrix G = R^T R: how far R is from orthonormal.
