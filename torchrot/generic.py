@@ -222,12 +222,10 @@ def _is_maximum(S, slack):
     pivot = pick(p00, p11, p22)
     paa, pbb, pab = pick(p11, p00, p00), pick(p22, p22, p11), pick(p12, p02, p01)
     pai, pbi = pick(p01, p01, p02), pick(p02, p12, p12)
-    positive_pivot = pivot > 0
-    inv = 1 / torch.where(positive_pivot, pivot, 1.0)
-    qaa = paa - pai * pai * inv
-    qbb = pbb - pbi * pbi * inv
-    qab = pab - pai * pbi * inv
-    return positive_pivot & (qaa > 0) & (qaa * qbb - qab * qab > 0)
+    qaa = paa * pivot - pai * pai  # the Schur complement times the pivot
+    qbb = pbb * pivot - pbi * pbi
+    qab = pab * pivot - pai * pbi
+    return (pivot > 0) & (qaa > 0) & (qaa * qbb - qab * qab > 0)
 
 
 def _saddle_escape_rotation(S, squarings=4):
@@ -433,11 +431,11 @@ def _step(st, variant, converge, cap, eps):
     attempt = attempt + step_i
     undamped = ~(c - t > undamped_tol * t.abs())
     finished = stepping & undamped & (ww < eps * dd)
-    singular = finished & _singular_step(S, t, mm, c, eps)
-    stalled = stalled | singular
-    finished = finished & ~singular
     pending = st["pending"]
     if converge:
+        singular = finished & _singular_step(S, t, mm, c, eps)
+        stalled = stalled | singular
+        finished = finished & ~singular
         switch_now = (ww < ESTIMATE_SWITCH * dd) | (attempt >= GERSHGORIN_STEPS)
         switched = switched | (stepping & switch_now)
         saddle = finished & ~_is_maximum(S, MAX_CHECK_SLACK_EPS * eps)

@@ -33,11 +33,25 @@ struct CayleyStep {
   V d;     // det H
   V ww;    // w.w
   V dd;    // d^2; the paper's s = z.z = tan^2(theta / 2) is ww / dd
+  V mm;    // m.m
+  V hh;    // |H|_F^2
 
   // Is s < tol? False when H is singular or the step is not finite.
   template <typename L>
   typename L::Mask smaller_than(typename L::Scalar tol) const {
     return L::lt(ww, V(tol) * dd);
+  }
+
+  // Is H singular with the gradient m in its range, to working precision:
+  // |m|^2 >= tol |H|_F^2? A step z = -H^-1 m with z.z < tol has
+  // |m|^2 = |H z|^2 <= |H|_F^2 z.z < tol |H|_F^2, so a small step never meets
+  // this unless Cramer's rule gave 0 / 0: H singular and the system
+  // consistent, w = adj(H) m and det H both zero up to rounding, a tiny ratio
+  // w.w / d^2 at a point that is not stationary (newton's H is singular
+  // wherever tr(S) is an eigenvalue of S + S^T - tr(S) I).
+  template <typename L>
+  typename L::Mask singular(typename L::Scalar tol) const {
+    return L::mask_not(L::lt(mm, V(tol) * hh));
   }
 };
 
@@ -116,25 +130,9 @@ TORCHROT_INLINE CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
   step.w[2] = c02 * m[0] + c12 * m[1] + c22 * m[2];
   step.ww = step.w[0] * step.w[0] + step.w[1] * step.w[1] + step.w[2] * step.w[2];
   step.dd = step.d * step.d;
+  step.mm = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
+  step.hh = H.frobenius2();
   return step;
-}
-
-// Whether the system of cayley_step(S, c) is singular with the gradient m in
-// its range, to working precision: |m|^2 >= tol |H|_F^2. A step z = -H^-1 m
-// with z.z < tol satisfies |m|^2 = |H z|^2 <= |H|_F^2 z.z < tol |H|_F^2, so a
-// small step never meets this unless Cramer's rule gave 0 / 0: H singular and
-// the system consistent, w = adj(H) m and det H both zero up to rounding, a
-// tiny ratio w.w / d^2 at a point that is not stationary (newton's H is
-// singular wherever tr(S) is an eigenvalue of S + S^T - tr(S) I).
-template <typename L>
-TORCHROT_INLINE typename L::Mask singular_step(const Mat3<typename L::V>& S, typename L::V c,
-                                               typename L::Scalar tol) {
-  using V = typename L::V;
-  V m[3];
-  skew_vector(S, m);
-  const V hh = StepSystem<V>(S, c).frobenius2();
-  const V mm = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
-  return L::mask_not(L::lt(mm, V(tol) * hh));
 }
 
 // The rotation with Cayley parameters z = -w / d (Eq. 10), multiplied

@@ -180,22 +180,22 @@ template <typename L>
     const Mask valid = can_take<L>(step);
     Mask stalled = L::mask_and(s.running, L::mask_not(valid));
     const Mask stepping = take_step<L>(s, step, valid);
-    // An undamped step below eps: converged, unless it is small only because
-    // H is singular (singular_step): that lane is stalled like one that
-    // cannot step at all.
+    // An undamped step below eps: converged.
     const Mask undamped = L::mask_not(L::gt(c - t, V(Tol::undamped) * L::abs(t)));
     Mask finished = L::mask_and(stepping, L::mask_and(undamped, step.template smaller_than<L>(Tol::converged)));
-    if (L::any(finished)) {
-      const Mask singular = L::mask_and(finished, singular_step<L>(S, c, Tol::converged));
-      stalled = L::mask_or(stalled, singular);
-      finished = L::mask_and(finished, L::mask_not(singular));
-    }
 
     if (converge) {
       const Mask switch_now = L::mask_or(step.template smaller_than<L>(Tol::estimate_switch),
                                          L::mask_not(L::lt(s.attempt_steps, V(Tol::gershgorin_steps))));
       s.switched = L::mask_or(s.switched, L::mask_and(stepping, switch_now));
       if (L::any(finished)) {
+        // Unless the step is small only because H is singular
+        // (CayleyStep::singular): that lane is stalled like one that cannot
+        // step at all. (With a step limit, stalled and finished lanes both
+        // stop: no check needed.)
+        const Mask singular = L::mask_and(finished, step.template singular<L>(Tol::converged));
+        stalled = L::mask_or(stalled, singular);
+        finished = L::mask_and(finished, L::mask_not(singular));
         // The maximum, or a saddle (S of this last tiny step is symmetric
         // up to it)? Saddles are escaped by a half-turn and iterate again.
         const Mask at_maximum = L::mask_and(finished, is_maximum<L>(S, Tol::max_check_slack));

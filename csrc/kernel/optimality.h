@@ -45,13 +45,13 @@ TORCHROT_INLINE typename L::Mask is_maximum(const Mat3<typename L::V>& S, typena
   const V pivot = pick(p00, p11, p22);
   const V paa = pick(p11, p00, p00), pbb = pick(p22, p22, p11), pab = pick(p12, p02, p01);
   const V pai = pick(p01, p01, p02), pbi = pick(p02, p12, p12);
+  // The Schur complement times the pivot (no division; the signs tested are
+  // those of pivot * Q and pivot^2 det Q with pivot > 0).
+  const V qaa = paa * pivot - pai * pai;
+  const V qbb = pbb * pivot - pbi * pbi;
+  const V qab = pab * pivot - pai * pbi;
   const V zero(0);
-  const Mask positive_pivot = L::gt(pivot, zero);
-  const V inv = V(1) / L::select(positive_pivot, pivot, V(1));
-  const V qaa = paa - pai * pai * inv;
-  const V qbb = pbb - pbi * pbi * inv;
-  const V qab = pab - pai * pbi * inv;
-  return L::mask_and(L::mask_and(positive_pivot, L::gt(qaa, zero)), L::gt(qaa * qbb - qab * qab, zero));
+  return L::mask_and(L::mask_and(L::gt(pivot, zero), L::gt(qaa, zero)), L::gt(qaa * qbb - qab * qab, zero));
 }
 
 // |G - I|_F^2 for the Gram matrix G = R^T R: how far R is from orthonormal.
