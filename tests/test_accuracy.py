@@ -431,10 +431,11 @@ NEAR_DEGENERATE_REFLECTION = [[-0.04649638012051582, -0.0, -0.0],
 
 # Found by .ci/fuzz (seed 309661663, test_batched_recipes[float32], cold): at
 # the start R = diag(-1, -1, 1), newton's H = S + S^T - 2 tr(S) I is singular
-# and the gradient m = (1, 0, -1) / 6 lies in its range, so Cramer's rule gives
-# 0 / 0 and a step of rounding noise, which counted as converged (1 step,
-# status 0, 0.396 |M|_F short). Such a step is stalled (cayley.h,
-# singular_step): the fallback decides. Also scaled into float32 subnormals.
+# and the gradient m = (1, 0, -1) (of M / 6) lies in its range, so Cramer's
+# rule gives 0 / 0 and a step of rounding noise, which counted as converged (1
+# step, status 0, 0.396 |M|_F short). Such a step is stalled
+# (CayleyStep::singular, cayley.h): the fallback decides. Also scaled into
+# float32 subnormals.
 NEWTON_WRONG_MAXIMUM = [[-3.0, -6.0, -2.0], [0.0, -2.0, 0.0], [2.0, 6.0, 3.0]]
 
 

@@ -165,7 +165,11 @@ def _objective_estimate(S, t, mm, variant):
 
 
 def _cayley_step(S, t, m, c):
-    h00, h11, h22, h01, h02, h12 = _system(S, t, c)
+    """Algorithm 2 (cayley_step, cayley.h): w = adj(H) m, d = det H, w.w, d^2 and
+    |H|_F^2 for H = S + S^T - (t + c) I."""
+    shift = t + c
+    h00, h11, h22 = 2 * S[0] - shift, 2 * S[4] - shift, 2 * S[8] - shift
+    h01, h02, h12 = S[1] + S[3], S[2] + S[6], S[5] + S[7]
     c00 = h11 * h22 - h12 * h12
     c01 = h02 * h12 - h01 * h22
     c02 = h01 * h12 - h02 * h11
@@ -176,20 +180,8 @@ def _cayley_step(S, t, m, c):
     w0 = c00 * m[0] + c01 * m[1] + c02 * m[2]
     w1 = c01 * m[0] + c11 * m[1] + c12 * m[2]
     w2 = c02 * m[0] + c12 * m[1] + c22 * m[2]
-    return (w0, w1, w2), d, w0 * w0 + w1 * w1 + w2 * w2, d * d
-
-
-def _system(S, t, c):
-    """The entries h00, h11, h22, h01, h02, h12 of Algorithm 2's H = S + S^T - (t + c) I."""
-    shift = t + c
-    return 2 * S[0] - shift, 2 * S[4] - shift, 2 * S[8] - shift, S[1] + S[3], S[2] + S[6], S[5] + S[7]
-
-
-def _singular_step(S, t, mm, c, tol):
-    """singular_step (cayley.h): |m|^2 >= tol |H|_F^2, a step small only by Cramer's 0 / 0."""
-    h00, h11, h22, h01, h02, h12 = _system(S, t, c)
     hh = h00 * h00 + h11 * h11 + h22 * h22 + 2 * (h01 * h01 + h02 * h02 + h12 * h12)
-    return ~(mm < tol * hh)
+    return (w0, w1, w2), d, w0 * w0 + w1 * w1 + w2 * w2, d * d, hh
 
 
 def _cayley_rotation(w, d, ww, dd):
@@ -415,7 +407,7 @@ def _step(st, variant, converge, cap, eps):
     c = _objective_estimate(S, t, mm, variant)
     if converge and variant == "gershgorin":
         c = torch.where(switched, _objective_estimate(S, t, mm, "conservative"), c)
-    w, d, ww, dd = _cayley_step(S, t, m, c)
+    w, d, ww, dd, hh = _cayley_step(S, t, m, c)
     norm2 = dd + ww
     valid = (dd > 0) & torch.isfinite(norm2) & (norm2 > tiny)
     stepping = running & valid
@@ -433,7 +425,7 @@ def _step(st, variant, converge, cap, eps):
     finished = stepping & undamped & (ww < eps * dd)
     pending = st["pending"]
     if converge:
-        singular = finished & _singular_step(S, t, mm, c, eps)
+        singular = finished & ~(mm < eps * hh)  # CayleyStep::singular (cayley.h)
         stalled = stalled | singular
         finished = finished & ~singular
         switch_now = (ww < ESTIMATE_SWITCH * dd) | (attempt >= GERSHGORIN_STEPS)
