@@ -1,9 +1,11 @@
 """Every kernel the CPU offers, on fixed data, saved or compared bit for bit.
 
-``.ci/qemu`` runs ``save`` natively with the scalar kernel, then ``compare``
-inside qemu-x86_64 emulating older CPUs: each kernel the emulated CPU
-supports (and each request above it, which must be capped, not executed)
-must reproduce the native scalar results exactly: forward in every mode and
+``.ci/qemu`` runs ``save`` natively with the scalar kernel (and with each
+kernel that rounds differently from it: x86-64's default, see
+``torchrot.testing.rounding_reference``), then ``compare`` inside qemu-x86_64
+emulating older CPUs: each kernel the emulated CPU supports (and each request
+above it, which must be capped, not executed) must reproduce the native
+results of its rounding reference exactly: forward in every mode and
 variant, cold and warm, every batch size 0-70, transposed and strided
 layouts, NaN/Inf inputs, and the backward kernel.
 
@@ -21,7 +23,8 @@ import sys
 import torch
 
 import torchrot
-from torchrot.testing import DISTRIBUTIONS, cpu_kernel, edge_case_matrices, make_matrices, random_rotations
+from torchrot.testing import (DISTRIBUTIONS, cpu_kernel, edge_case_matrices, make_matrices, random_rotations,
+                               rounding_reference)
 
 ISAS = ("scalar", "default", "avx2", "avx512")
 INT_VIEW = {torch.float32: torch.int32, torch.float64: torch.int64, torch.int32: torch.int32,
@@ -96,17 +99,19 @@ def main() -> int:
     args = parser.parse_args()
     aten = torch.backends.cpu.get_cpu_capability()
     if args.action == "save":
-        with cpu_kernel("scalar") as used:
-            assert used == "scalar"
-            data = {str(dtype).removeprefix("torch."): inputs(dtype) for dtype in (torch.float32, torch.float64)}
-            torch.save({"inputs": data, "results": results(data)}, args.file)
-        print(json.dumps({"saved": args.file, "aten": aten}))
+        data = {str(dtype).removeprefix("torch."): inputs(dtype) for dtype in (torch.float32, torch.float64)}
+        saved = {}
+        for name in sorted({rounding_reference(isa) for isa in ISAS}):
+            with cpu_kernel(name) as used:
+                assert used == name
+                saved[name] = results(data)
+        torch.save({"inputs": data, "results": saved}, args.file)
+        print(json.dumps({"saved": args.file, "aten": aten, "references": sorted(saved)}))
         return 0
     if args.expect_aten and aten != args.expect_aten:
         print(f"FAIL: ATen reports {aten}, expected {args.expect_aten}")
         return 1
     saved = torch.load(args.file)
-    reference = saved["results"]
     hardware = {"AVX512": "avx512", "AVX2": "avx2"}.get(aten, "default")
     report = {"aten": aten, "kernels": {}, "tensors_compared": 0, "mismatches": []}
     for request in ISAS:
@@ -116,8 +121,9 @@ def main() -> int:
                 report["mismatches"].append(f"request {request} ran kernel {kernel}, expected {expected_kernel}")
                 continue
             got = results(saved["inputs"])
-        report["kernels"][request] = kernel
-        for name, ref in reference.items():
+            reference_name = rounding_reference(kernel)
+        report["kernels"][request] = f"{kernel} (as {reference_name})"
+        for name, ref in saved["results"][reference_name].items():
             report["tensors_compared"] += 1
             if ref.shape != got[name].shape or not same(ref, got[name], any_nan="/backward/" in name):
                 report["mismatches"].append(f"{request}: {name}")

@@ -46,6 +46,11 @@ enum class FitStatus : uint8_t {
 // "scalar", "default", "avx2" or "avx512" (see cpu/dispatch.cpp).
 std::string cpu_kernel_name();
 
+// Whether that kernel rounds a * b + c once, as the scalar kernel does: then
+// its results are the scalar kernel's bit for bit. False only for x86-64's
+// "default" kernel (CPUs without AVX2 and FMA; see kernel/mul_add.h).
+bool cpu_kernel_fuses_multiply_add();
+
 // Forces the kernel object `name` (capped at the hardware's level) for the
 // calling thread's calls; "" returns to the process-wide choice. Returns the
 // previously forced name ("" if none). ValueError for an unknown name.

@@ -405,6 +405,9 @@ TORCH_LIBRARY(torchrot, m) {
   // Which CPU kernel object runs in the calling thread: "scalar", "default",
   // "avx2" or "avx512".
   m.def("cpu_kernel() -> str", [] { return cpu_kernel_name(); });
+  // Whether that kernel's results are the scalar kernel's bit for bit (it
+  // rounds a * b + c once, as the scalar kernel does; see kernel/mul_add.h).
+  m.def("_cpu_kernel_fuses_multiply_add() -> bool", [] { return cpu_kernel_fuses_multiply_add(); });
   // Forces a kernel object for the calling thread ("" to stop); returns the
   // previously forced one. Use torchrot.testing.cpu_kernel(name).
   m.def("_set_cpu_kernel(str name) -> str",

@@ -9,7 +9,9 @@ Properties, for float32 and float64, at every instruction set the CPU has:
   and status 3, and nothing else: its neighbours in the same SIMD block are
   unaffected;
 * every kernel (default, avx2, avx512) gives bit-identical R, iterations and
-  status to the scalar kernel (which fits one matrix at a time);
+  status to the scalar kernel (which fits one matrix at a time); but x86-64's
+  default kernel, which rounds a * b + c twice (csrc/kernel/mul_add.h), is
+  held to the properties above on its own results instead;
 * scaling M by a power of two (entries staying normal) changes nothing, bit
   for bit: the kernel normalises exactly;
 * derivatives (autograd backward through ``fit_rotation`` and the forward-mode
@@ -46,7 +48,7 @@ from hypothesis import strategies as st
 
 import torchrot
 from torchrot.reference import quaternion_rotation, rotation_svd
-from torchrot.testing import CRITERIA, DISTRIBUTIONS, bits, cpu_kernel, dtype_id, random_rotations
+from torchrot.testing import CRITERIA, DISTRIBUTIONS, bits, cpu_kernel, dtype_id, random_rotations, rounds_like_scalar
 
 DTYPES = (torch.float32, torch.float64)
 VARIANTS = ("newton", "conservative", "gershgorin")
@@ -61,6 +63,7 @@ def _supported_isas() -> tuple[str, ...]:
 
 
 SUPPORTED_ISAS = _supported_isas()
+ROUNDS_LIKE_SCALAR = {isa: rounds_like_scalar(isa) for isa in SUPPORTED_ISAS}
 LONG = os.environ.get("TORCHROT_FUZZ", "") == "long"
 SCALE = int(os.environ.get("TORCHROT_FUZZ_SCALE", "1"))
 
@@ -162,18 +165,41 @@ def rotation_failures(R: torch.Tensor, M: torch.Tensor, dtype, converged: bool) 
 
 
 def check_fit(M: torch.Tensor, init: torch.Tensor | None, max_iter, variant, what: str = "") -> None:
-    """All properties for ``(n, 3, 3)`` M and optional init broadcastable to it."""
-    dtype = M.dtype
+    """All properties for ``(n, 3, 3)`` M and optional init broadcastable to it:
+    of the scalar kernel's results, and of those of any kernel that rounds
+    differently (x86-64's default, ``rounds_like_scalar``); every other kernel
+    must reproduce the scalar kernel's bit for bit."""
     n = M.shape[0]
     results = fit_every_kernel(M, init, max_iter, variant)
+    context = f"{what} {M.dtype} n={n} max_iter={max_iter} variant={variant} warm={init is not None}"
+    CHECKED["matrices"] += n
+    for isa, got in results.items():
+        if isa == "scalar" or not ROUNDS_LIKE_SCALAR[isa]:
+            check_fit_properties(M, init, max_iter, got, f"{context} {isa}")
     R, iterations, status = results["scalar"]
-    context = f"{what} {dtype} n={n} max_iter={max_iter} variant={variant} warm={init is not None}"
+    for isa, got in results.items():
+        if not ROUNDS_LIKE_SCALAR[isa]:
+            continue
+        for name, a, b in zip(("R", "iterations", "status"), got, (R, iterations, status)):
+            same = torch.equal(bits(a), bits(b)) if name == "R" else torch.equal(a, b)
+            if not same:
+                bad = (bits(a) != bits(b)).reshape(n, -1).any(1) if name == "R" else (a != b)
+                i = int(bad.nonzero()[0])
+                pytest.fail(f"{context}: {isa} {name} differs from scalar at matrix {i}: M={M[i].tolist()}, "
+                            f"{isa} {a[i].tolist()} vs scalar {b[i].tolist()}")
 
+
+def check_fit_properties(M, init, max_iter, result, context: str) -> None:
+    """NaN exactly for non-finite input, statuses, step counts and the
+    accuracy criteria of one kernel's ``(R, iterations, status)``."""
+    dtype = M.dtype
+    n = M.shape[0]
+    R, iterations, status = result
     non_finite = ~torch.isfinite(M).reshape(n, 9).all(1)
     if init is not None:
         non_finite |= ~torch.isfinite(init.expand(M.shape)).reshape(n, 9).all(1)
-    CHECKED["matrices"] += n
-    CHECKED["non_finite"] += int(non_finite.sum())
+    if context.endswith(" scalar"):
+        CHECKED["non_finite"] += int(non_finite.sum())
 
     # NaN exactly where the input had NaN/Inf, in all nine entries
     R_nan = torch.isnan(R).reshape(n, 9)
@@ -195,15 +221,6 @@ def check_fit(M: torch.Tensor, init: torch.Tensor | None, max_iter, variant, wha
     failures = rotation_failures(R[finite], M[finite], dtype, converged)
     assert not failures, f"{context}: " + "; ".join(failures)
 
-    for isa, got in results.items():
-        for name, a, b in zip(("R", "iterations", "status"), got, (R, iterations, status)):
-            same = torch.equal(bits(a), bits(b)) if name == "R" else torch.equal(a, b)
-            if not same:
-                bad = (bits(a) != bits(b)).reshape(n, -1).any(1) if name == "R" else (a != b)
-                i = int(bad.nonzero()[0])
-                pytest.fail(f"{context}: {isa} {name} differs from scalar at matrix {i}: M={M[i].tolist()}, "
-                            f"{isa} {a[i].tolist()} vs scalar {b[i].tolist()}")
-
 
 #: damping values the derivative is fuzzed with (0: undamped; the default 1e-6)
 GRADIENT_EPS_VALUES = (0.0, 1e-12, 1e-7, 1e-6, 1e-3, 1.0, 1e3)  # 1e3: the largest accepted
@@ -216,7 +233,8 @@ def _rows_finite(t: torch.Tensor, n: int) -> torch.Tensor:
 def check_derivatives(M, init, max_iter, variant, G, gradient_eps, what: str = "") -> None:
     """Backward (dL/dM for dL/dR = G) and forward-mode tangent (dR for
     dM = G) at every kernel: finite where M, init and G are finite, and
-    bit-identical to the scalar kernel (NaN vs NaN where an input was not)."""
+    bit-identical to the scalar kernel (NaN vs NaN where an input was not)
+    at the kernels that round like it (``rounds_like_scalar``)."""
     n = M.shape[0]
     context = (f"{what} {M.dtype} n={n} max_iter={max_iter} variant={variant} warm={init is not None} "
                f"gradient_eps={gradient_eps}")
@@ -237,12 +255,17 @@ def check_derivatives(M, init, max_iter, variant, G, gradient_eps, what: str = "
         results[isa] = (M_leaf.grad, tangent)
         CHECKED["kernel_calls"] += 4
     CHECKED["derivative_matrices"] += n
-    for name, value in zip(("backward", "tangent"), results["scalar"]):
-        finite_out = _rows_finite(value, n)
-        bad = (finite_in & ~finite_out).nonzero().flatten().tolist()
-        assert not bad, (f"{context}: non-finite {name} for finite input at {bad[:5]}: M={M[bad[0]].tolist()} "
-                         f"G={G[bad[0]].tolist()} -> {value[bad[0]].tolist()}")
     for isa, got in results.items():
+        if isa != "scalar" and ROUNDS_LIKE_SCALAR[isa]:
+            continue  # compared with the scalar kernel's below
+        for name, value in zip(("backward", "tangent"), got):
+            finite_out = _rows_finite(value, n)
+            bad = (finite_in & ~finite_out).nonzero().flatten().tolist()
+            assert not bad, (f"{context}: {isa}: non-finite {name} for finite input at {bad[:5]}: "
+                             f"M={M[bad[0]].tolist()} G={G[bad[0]].tolist()} -> {value[bad[0]].tolist()}")
+    for isa, got in results.items():
+        if not ROUNDS_LIKE_SCALAR[isa]:
+            continue
         for name, a, b in zip(("backward", "tangent"), got, results["scalar"]):
             # entrywise: equal bits, or NaN in both (the NaN's sign may differ
             # between the scalar and SIMD min/max for NaN/Inf inputs)

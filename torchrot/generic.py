@@ -8,7 +8,9 @@ and every step of the C++ kernel (csrc/kernel/fit_rotation_impl.h: begin_fit /
 advance / finish; cayley.h, cold_start.h, optimality.h, saddle_escape.h,
 horn_fallback.h) is spelled out entry by entry, with per-matrix masks instead
 of branches, so each lane executes the kernel's state machine: in float64 the
-same iteration counts and status codes (tests/test_generic_path.py).
+same iteration counts and status codes (tests/test_generic_path.py), but on
+the rare lane where rounding decides (a degenerate maximum or a saddle): the
+kernel rounds a * b + c once (csrc/kernel/mul_add.h), torch's ops twice.
 
 Schedule (converged mode): the whole batch takes up to ``full_steps(dtype)`` masked
 Cayley steps (most matrices converge within them), saddle escapes deferred;

@@ -57,6 +57,24 @@ def rotations(shape: int | tuple[int, ...], seed: int = 0, dtype: torch.dtype = 
 CPU_KERNELS = ("scalar", "default", "avx2", "avx512")
 
 
+def rounds_like_scalar(name: str) -> bool:
+    """Whether CPU kernel ``name`` (capped at this CPU, as :func:`cpu_kernel`
+    caps it) gives the scalar kernel's results bit for bit: it rounds
+    ``a * b + c`` once, as the scalar kernel does. False only for x86-64's
+    "default" kernel, the one for CPUs without AVX2 and FMA
+    (csrc/kernel/mul_add.h); it meets the same accuracy criteria and is
+    bit-identical across its own batch sizes, layouts and threads."""
+    with cpu_kernel(name):
+        return bool(torch.ops.torchrot._cpu_kernel_fuses_multiply_add())
+
+
+def rounding_reference(name: str) -> str:
+    """The kernel whose results CPU kernel ``name`` reproduces bit for bit:
+    "scalar", or ``name`` itself where it rounds differently
+    (:func:`rounds_like_scalar`)."""
+    return "scalar" if rounds_like_scalar(name) else name
+
+
 @contextlib.contextmanager
 def cpu_kernel(name: str | None) -> Iterator[str]:
     """``with cpu_kernel("scalar") as used: ...`` runs the calling thread's

@@ -127,6 +127,8 @@ void run_kernel(const cpu::KernelTable& table, const cpu::TangentArgs<double>& a
 
 std::string cpu_kernel_name() { return kernels(selected_isa()).name; }
 
+bool cpu_kernel_fuses_multiply_add() { return kernels(selected_isa()).fused_multiply_add; }
+
 std::string set_thread_cpu_kernel(const std::string& name) {
   const std::string previous = forced_isa >= 0 ? kIsaNames[forced_isa] : "";
   if (name.empty()) {

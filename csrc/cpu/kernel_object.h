@@ -17,6 +17,7 @@ KernelTable make_kernel_table(const char* name) {
   return KernelTable{name,
                      Lanes<float>::width,
                      Lanes<double>::width,
+                     Lanes<float>::fused_multiply_add && Lanes<double>::fused_multiply_add,
                      &fit_batch<Lanes<float>>,
                      &fit_batch<Lanes<double>>,
                      &tangent_batch<Lanes<float>>,

@@ -64,6 +64,10 @@ struct KernelTable {
   const char* name;
   int width_float;   // matrices per SIMD block
   int width_double;
+  // Rounds a * b + c once, as the scalar kernel does, so its results are the
+  // scalar kernel's bit for bit (false only for x86-64's default object, see
+  // kernel/mul_add.h).
+  bool fused_multiply_add;
   // Each returns the number of matrices whose warm start was not a rotation.
   int64_t (*fit_float)(const BatchArgs<float>&);
   int64_t (*fit_double)(const BatchArgs<double>&);

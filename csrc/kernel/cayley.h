@@ -75,7 +75,7 @@ TORCHROT_INLINE typename L::V objective_estimate(const Mat3<typename L::V>& S, V
   if (variant == Variant::kNewton) return t;  // Eq. 21: the Taylor model at 0
   V m[3];
   skew_vector(S, m);
-  const V mm = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
+  const V mm = dot3(m[0], m[0], m[1], m[1], m[2], m[2]);
   V g_sym = t;  // conservative: max g_S ~ tr S
   if (variant == Variant::kGershgorin) {
     // 2 lambda_2 <= max_i (2 S_ii + sum_{j != i} |S_ij + S_ji|)   (Eq. 28)
@@ -86,7 +86,7 @@ TORCHROT_INLINE typename L::V objective_estimate(const Mat3<typename L::V>& S, V
                                  L::max(V(2) * S(1, 1) + s01 + s12, V(2) * S(2, 2) + s02 + s12));
     g_sym = L::max(t, two_lambda2 - t);
   }
-  return L::sqrt(g_sym * g_sym + mm);  // Eqs. 26-27
+  return L::sqrt(mul_add(g_sym, g_sym, mm));  // Eqs. 26-27
 }
 
 // The symmetric system matrix H = S + S^T - (tr S + c) I of Algorithm 2.
@@ -103,7 +103,7 @@ struct StepSystem {
     h12 = S(1, 2) + S(2, 1);
   }
   TORCHROT_INLINE V frobenius2() const {
-    return h00 * h00 + h11 * h11 + h22 * h22 + V(2) * (h01 * h01 + h02 * h02 + h12 * h12);
+    return mul_add(h00, h00, mul_add(h11, h11, mul_add(h22, h22, V(2) * dot3(h01, h01, h02, h02, h12, h12))));
   }
 };
 
@@ -116,21 +116,22 @@ TORCHROT_INLINE CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
   const StepSystem<V> H(S, c);
   const V h00 = H.h00, h11 = H.h11, h22 = H.h22, h01 = H.h01, h02 = H.h02, h12 = H.h12;
 
-  const V c00 = h11 * h22 - h12 * h12;
-  const V c01 = h02 * h12 - h01 * h22;
-  const V c02 = h01 * h12 - h02 * h11;
-  const V c11 = h00 * h22 - h02 * h02;
-  const V c12 = h01 * h02 - h00 * h12;
-  const V c22 = h00 * h11 - h01 * h01;
+  // a b - c d as mul_add(a, b, -(c d)): one product rounded, as in dot3.
+  const V c00 = mul_add(h11, h22, -(h12 * h12));
+  const V c01 = mul_add(h02, h12, -(h01 * h22));
+  const V c02 = mul_add(h01, h12, -(h02 * h11));
+  const V c11 = mul_add(h00, h22, -(h02 * h02));
+  const V c12 = mul_add(h01, h02, -(h00 * h12));
+  const V c22 = mul_add(h00, h11, -(h01 * h01));
 
   CayleyStep<V> step;
-  step.d = h00 * c00 + h01 * c01 + h02 * c02;
-  step.w[0] = c00 * m[0] + c01 * m[1] + c02 * m[2];
-  step.w[1] = c01 * m[0] + c11 * m[1] + c12 * m[2];
-  step.w[2] = c02 * m[0] + c12 * m[1] + c22 * m[2];
-  step.ww = step.w[0] * step.w[0] + step.w[1] * step.w[1] + step.w[2] * step.w[2];
+  step.d = dot3(h00, c00, h01, c01, h02, c02);
+  step.w[0] = dot3(c00, m[0], c01, m[1], c02, m[2]);
+  step.w[1] = dot3(c01, m[0], c11, m[1], c12, m[2]);
+  step.w[2] = dot3(c02, m[0], c12, m[1], c22, m[2]);
+  step.ww = dot3(step.w[0], step.w[0], step.w[1], step.w[1], step.w[2], step.w[2]);
   step.dd = step.d * step.d;
-  step.mm = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
+  step.mm = dot3(m[0], m[0], m[1], m[1], m[2], m[2]);
   step.hh = H.frobenius2();
   return step;
 }
@@ -145,17 +146,17 @@ TORCHROT_INLINE Mat3<V> cayley_rotation(const CayleyStep<V>& step) {
   const V two_inv = V(2) * inv;
   const V two_d_inv = step.d * two_inv;
   Mat3<V> Q;
-  Q(0, 0) = (diag + V(2) * x * x) * inv;
-  Q(1, 1) = (diag + V(2) * y * y) * inv;
-  Q(2, 2) = (diag + V(2) * w * w) * inv;
+  Q(0, 0) = mul_add(V(2) * x, x, diag) * inv;
+  Q(1, 1) = mul_add(V(2) * y, y, diag) * inv;
+  Q(2, 2) = mul_add(V(2) * w, w, diag) * inv;
   const V xy = x * y * two_inv, xw = x * w * two_inv, yw = y * w * two_inv;
-  const V dx = x * two_d_inv, dy = y * two_d_inv, dw = w * two_d_inv;
-  Q(0, 1) = xy + dw;
-  Q(1, 0) = xy - dw;
-  Q(0, 2) = xw - dy;
-  Q(2, 0) = xw + dy;
-  Q(1, 2) = yw + dx;
-  Q(2, 1) = yw - dx;
+  // xy +- w two_d_inv, ... (one rounding each, mul_add.h)
+  Q(0, 1) = mul_add(w, two_d_inv, xy);
+  Q(1, 0) = mul_add(-w, two_d_inv, xy);
+  Q(0, 2) = mul_add(-y, two_d_inv, xw);
+  Q(2, 0) = mul_add(y, two_d_inv, xw);
+  Q(1, 2) = mul_add(x, two_d_inv, yw);
+  Q(2, 1) = mul_add(-x, two_d_inv, yw);
   return Q;
 }
 

@@ -27,6 +27,7 @@ struct ScalarLanes {
   using V = T;
   using Mask = bool;
   static constexpr int width = 1;
+  static constexpr bool fused_multiply_add = true;  // mul_add.h: std::fma
 
   static V load(const T* p) { return *p; }
   static void store(V v, T* p) { *p = v; }
@@ -57,6 +58,7 @@ struct VectorLanes {
   using V = at::vec::Vectorized<T>;
   using Mask = V;  // all bits set in selected lanes
   static constexpr int width = V::size();
+  static constexpr bool fused_multiply_add = kFusedMultiplyAdd;  // mul_add.h
 
   static V load(const T* p) { return V::loadu(p); }
   static void store(V v, T* p) { v.store(p); }

@@ -2,13 +2,16 @@
 //
 // `V` is either a scalar (float / double) or, for the vectorised kernels, an
 // `at::vec::Vectorized<T>` holding one matrix entry of several matrices.  The
-// code below only uses +, -, * and / so it is valid for both.  Matrices are
-// row-major: entry (r, c) is `a[3 * r + c]`.
+// code below only uses +, -, *, / and mul_add (mul_add.h) so it is valid for
+// both.  Matrices are row-major: entry (r, c) is `a[3 * r + c]`.  Sums of three
+// products are evaluated as mul_add(a0, b0, mul_add(a1, b1, a2 * b2)): the
+// same order everywhere, so every kernel object rounds alike.
 #pragma once
 
 #include <cstdint>
 
 #include "force_inline.h"
+#include "mul_add.h"
 
 namespace torchrot {
 namespace kernel {
@@ -22,13 +25,19 @@ struct Mat3 {
   const V& operator()(int r, int c) const { return a[3 * r + c]; }
 };
 
+// a0 b0 + a1 b1 + a2 b2, the kernel's one evaluation order for it.
+template <typename V>
+TORCHROT_INLINE V dot3(const V& a0, const V& b0, const V& a1, const V& b1, const V& a2, const V& b2) {
+  return mul_add(a0, b0, mul_add(a1, b1, a2 * b2));
+}
+
 // Returns A^T B.
 template <typename V>
 TORCHROT_INLINE Mat3<V> transpose_times(const Mat3<V>& A, const Mat3<V>& B) {
   Mat3<V> C;
   for (int r = 0; r < 3; ++r) {
     for (int c = 0; c < 3; ++c) {
-      C(r, c) = A(0, r) * B(0, c) + A(1, r) * B(1, c) + A(2, r) * B(2, c);
+      C(r, c) = dot3(A(0, r), B(0, c), A(1, r), B(1, c), A(2, r), B(2, c));
     }
   }
   return C;
@@ -40,7 +49,7 @@ TORCHROT_INLINE Mat3<V> times(const Mat3<V>& A, const Mat3<V>& B) {
   Mat3<V> C;
   for (int r = 0; r < 3; ++r) {
     for (int c = 0; c < 3; ++c) {
-      C(r, c) = A(r, 0) * B(0, c) + A(r, 1) * B(1, c) + A(r, 2) * B(2, c);
+      C(r, c) = dot3(A(r, 0), B(0, c), A(r, 1), B(1, c), A(r, 2), B(2, c));
     }
   }
   return C;
@@ -52,7 +61,7 @@ TORCHROT_INLINE Mat3<V> gram(const Mat3<V>& R) {
   Mat3<V> G;
   for (int r = 0; r < 3; ++r) {
     for (int c = r; c < 3; ++c) {
-      G(r, c) = R(0, r) * R(0, c) + R(1, r) * R(1, c) + R(2, r) * R(2, c);
+      G(r, c) = dot3(R(0, r), R(0, c), R(1, r), R(1, c), R(2, r), R(2, c));
       G(c, r) = G(r, c);
     }
   }
@@ -65,7 +74,7 @@ TORCHROT_INLINE Mat3<V> gram(const Mat3<V>& R) {
 // G is R^T R (see gram).
 template <typename V>
 TORCHROT_INLINE Mat3<V> reorthonormalize(const Mat3<V>& R, Mat3<V> G) {
-  for (int i = 0; i < 9; ++i) G.a[i] = V(i % 4 == 0 ? 1.5 : 0) - V(0.5) * G.a[i];
+  for (int i = 0; i < 9; ++i) G.a[i] = mul_add(V(-0.5), G.a[i], V(i % 4 == 0 ? 1.5 : 0));
   return times(R, G);
 }
 
