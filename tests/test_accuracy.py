@@ -435,8 +435,11 @@ NEAR_DEGENERATE_REFLECTION = [[-0.04649638012051582, -0.0, -0.0],
 # rule gives 0 / 0 and a step of rounding noise, which counted as converged (1
 # step, status 0, 0.396 |M|_F short). Such a step is stalled
 # (CayleyStep::singular, cayley.h): the fallback decides. Also scaled into
-# float32 subnormals.
+# float32 subnormals. (The cold start was then the best of the tetrahedral
+# group's 12 rotations; the cube's 24 (cold_start.h) start elsewhere, so the
+# singular start is now given as the warm start.)
 NEWTON_WRONG_MAXIMUM = [[-3.0, -6.0, -2.0], [0.0, -2.0, 0.0], [2.0, 6.0, 3.0]]
+NEWTON_SINGULAR_START = [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]
 
 
 @pytest.mark.parametrize("case", ["near_degenerate_reflection", "newton_singular_start", "subnormal"])
@@ -449,14 +452,18 @@ def test_fuzz_findings_reach_the_maximum(case, fit, dtype, variant, assert_meets
         assert 0 < M.abs().max() < torch.finfo(dtype).tiny
     fitter = torchrot.fit_rotation if fit == "kernel" else fit_rotation_reference
     assert_meets_criteria(fitter(M, variant=variant), M, dtype, f"{case}, {variant}, cold")
+    if case != "near_degenerate_reflection":
+        init = torch.tensor([NEWTON_SINGULAR_START], dtype=dtype)
+        assert_meets_criteria(fitter(M, init, variant=variant), M, dtype, f"{case}, {variant}, singular start")
 
 
 def test_singular_newton_step_is_not_convergence():
     """The newton step at the singular start stalls: the fallback decides (status 1), in the
     kernel and in the generic path alike; with a step limit the lane stops there (status 0)."""
     M = torch.tensor([NEWTON_WRONG_MAXIMUM], dtype=torch.float64)
-    for fit in (torchrot.fit_rotation_info, lambda M, **kw: fit_rotation_reference(M, return_info=True, **kw)):
-        _, iterations, status = fit(M, variant="newton")
+    init = torch.tensor([NEWTON_SINGULAR_START], dtype=torch.float64)
+    for fit in (torchrot.fit_rotation_info, lambda M, init, **kw: fit_rotation_reference(M, init, return_info=True, **kw)):
+        _, iterations, status = fit(M, init, variant="newton")
         assert status.tolist() == [1]
-        _, iterations, status = fit(M, variant="newton", max_iter=5)
+        _, iterations, status = fit(M, init, variant="newton", max_iter=5)
         assert iterations.tolist() == [1] and status.tolist() == [0]

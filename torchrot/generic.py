@@ -245,36 +245,56 @@ def _saddle_escape_rotation(S, squarings=4):
     return [k * v[r] * v[c] - (1 if r == c else 0) for r in range(3) for c in range(3)]
 
 
-#: start_candidates (cold_start.h): the quaternions (times 2) of the identity,
-#: the three half-turns and the eight (1, +-1, +-1, +-1), in the kernel's order.
-_START_QUATERNIONS = [(2, 0, 0, 0), (0, 2, 0, 0), (0, 0, 2, 0), (0, 0, 0, 2)] + [
-    (1, *(-1 if (signs >> b) & 1 else 1 for b in range(3))) for signs in range(8)]
+#: cold_start.h's kStartPerm: row i's entry of permutation p is in column
+#: _START_PERMS[p][i]; the first three are even.
+_START_PERMS = ((0, 1, 2), (1, 2, 0), (2, 0, 1), (0, 2, 1), (2, 1, 0), (1, 0, 2))
 
 
 def _best_start_rotation(A):
-    """The start candidate of largest objective q^T K q (first of equals).
-
-    The winner's quaternion is computed from its index by integer
-    arithmetic rather than gathered from a table: compiled on CPU the pick
-    takes ~13 ns per matrix instead of ~17 (one gather per component)."""
-    K = _horn(A)
-    values = [K[0], K[5], K[10], K[15]]
-    for _, s1, s2, s3 in _START_QUATERNIONS[4:]:
-        values.append(0.5 * (s1 * K[1] + s2 * K[2] + s3 * K[3] + (s1 * s2) * K[6] + (s1 * s3) * K[7] + (s2 * s3) * K[11]))
-    best, index = values[0], torch.zeros(values[0].shape, dtype=_INT, device=values[0].device)
-    for i, value in enumerate(values[1:], 1):
-        index = torch.where(value > best, i, index)  # strict: the first of equals wins, as in the kernel
-        best = torch.maximum(best, value)
-    # Candidate i < 4: twice the i-th unit quaternion; i >= 4: (1, +-1, +-1, +-1)
-    # with bit b of i - 4 giving the sign of component b + 1 (_START_QUATERNIONS).
-    dtype = A[0].dtype
-    axis = index < 4
-    signs = index - 4
-    q = [torch.where(axis, (index == 0).to(dtype), 0.5)]
-    for b in range(3):
-        sign = 0.5 - ((signs >> b) & 1).to(dtype)  # +-0.5
-        q.append(torch.where(axis, (index == b + 1).to(dtype), sign))
-    return _quaternion_rotation(*q)
+    """The best of the 24 rotations of the cube (signed permutation matrices
+    of det +1) for tr(P^T A), the first of equals (cold_start.h, step by
+    step: each permutation with the signs of its entries, the smallest one
+    flipped where det would be -1)."""
+    magnitude = [a.abs() for a in A]
+    negative = [a < 0 for a in A]
+    best = winner = None
+    for p, col in enumerate(_START_PERMS):
+        a, b, c = magnitude[col[0]], magnitude[3 + col[1]], magnitude[6 + col[2]]
+        odd_negatives = negative[col[0]] ^ negative[3 + col[1]] ^ negative[6 + col[2]]
+        flip = odd_negatives if p < 3 else ~odd_negatives
+        total = (a + b) + c
+        value = torch.where(flip, total - 2 * torch.minimum(torch.minimum(a, b), c), total)
+        if p == 0:
+            best, winner = value, torch.zeros(value.shape, dtype=_INT, device=value.device)
+            continue
+        better = value > best  # strict: the first of equals wins, as in the kernel
+        best = torch.where(better, value, best)
+        winner = torch.where(better, p, winner)
+    chosen = [winner == p for p in range(6)]
+    odd_negatives = torch.zeros_like(chosen[0])
+    in_column, entry, size = [], [], []
+    for i in range(3):
+        row = []
+        for j in range(3):
+            mask = torch.zeros_like(chosen[0])
+            for p, col in enumerate(_START_PERMS):
+                if col[i] == j:
+                    mask = mask | chosen[p]
+            row.append(mask)
+        in_column.append(row)
+        entry.append(torch.where(row[0], A[3 * i], torch.where(row[1], A[3 * i + 1], A[3 * i + 2])))
+        size.append(entry[i].abs())
+        odd_negatives = odd_negatives ^ (entry[i] < 0)
+    flip = odd_negatives ^ (chosen[3] | chosen[4] | chosen[5])
+    smallest0 = ~(size[0] > size[1]) & ~(size[0] > size[2])
+    smallest1 = ~smallest0 & ~(size[1] > size[2])
+    smallest = (smallest0, smallest1, ~(smallest0 | smallest1))
+    R = []
+    for i in range(3):
+        sign = torch.where(entry[i] < 0, -1.0, 1.0).to(A[0].dtype)
+        s = torch.where(flip & smallest[i], -sign, sign)
+        R += [torch.where(in_column[i][j], s, 0.0).to(A[0].dtype) for j in range(3)]
+    return R
 
 
 def _horn_rotation(A):

@@ -95,9 +95,10 @@ struct StepSystem {
   V h00, h11, h22, h01, h02, h12;
   TORCHROT_INLINE StepSystem(const Mat3<V>& S, V c) {
     const V shift = trace(S) + c;
-    h00 = V(2) * S(0, 0) - shift;
-    h11 = V(2) * S(1, 1) - shift;
-    h22 = V(2) * S(2, 2) - shift;
+    // 2 S_ii is exact: one rounding either way, one instruction fused.
+    h00 = mul_add(V(2), S(0, 0), -shift);
+    h11 = mul_add(V(2), S(1, 1), -shift);
+    h22 = mul_add(V(2), S(2, 2), -shift);
     h01 = S(0, 1) + S(1, 0);
     h02 = S(0, 2) + S(2, 0);
     h12 = S(1, 2) + S(2, 1);

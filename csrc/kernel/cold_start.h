@@ -3,64 +3,76 @@
 //
 // The Cayley parameters z = tan(theta / 2) axis (Eq. 7) blow up as the remaining
 // rotation approaches pi, where the iteration stalls. We therefore start from
-// the best of the 12 rotations of the tetrahedral group: the identity, the
-// half-turns about the coordinate axes and the third-turns about the cube
-// diagonals. Their quaternions are e_w, e_x, e_y, e_z and (1, +-1, +-1, +-1) / 2;
-// each is a signed permutation matrix, so it is exact in any precision. Their
-// objectives q^T K q are sums of entries of Horn's matrix K (quaternion.h).
+// the best of the 24 rotations of the cube: the signed permutation matrices of
+// det +1 (the identity, the quarter- and half-turns about the coordinate axes,
+// the third-turns about the cube diagonals and the half-turns about the face
+// diagonals). They are exact in any precision, and the objective of one,
+// tr(P^T A) = sum_i s_i A(i, pi(i)), takes a few additions. For each of the 6
+// permutations pi, the best signs are those of the entries A(i, pi(i)), unless
+// their product has the wrong sign for det +1: then the smallest entry's sign
+// flips. (Measured, cold converged fits, float32: Gaussian M 3.39 -> 3.15 mean
+// steps, 5.9% -> 2.2% of matrices needing 5 or more, against the 12
+// rotations of the tetrahedral group used before; uniform [0, 1] M 3.20 ->
+// 3.18.) torchrot/generic.py's _best_start_rotation mirrors this.
 #pragma once
 
 #include "lanes.h"
-#include "quaternion.h"
+#include "mat3.h"
 
 namespace torchrot {
 namespace kernel {
 inline namespace CPU_CAPABILITY {
 namespace {
 
-// Objective of the third-turn candidate q = (1, s1, s2, s3) / 2 with the
-// signs given as template arguments: since tr K = 0,
-// q^T K q = (s1 K01 + s2 K02 + s3 K03 + s1 s2 K12 + s1 s3 K13 + s2 s3 K23) / 2.
-template <int S1, int S2, int S3, typename V>
-inline V third_turn_objective(const V K[16]) {
-  auto term = [](int sign, V x) { return sign > 0 ? x : V(0) - x; };
-  return V(0.5) * (term(S1, K[1]) + term(S2, K[2]) + term(S3, K[3]) + term(S1 * S2, K[6]) +
-                   term(S1 * S3, K[7]) + term(S2 * S3, K[11]));
-}
+// The permutations, even ones first: row i's entry is in column kStartPerm[p][i].
+constexpr int kStartPerm[6][3] = {{0, 1, 2}, {1, 2, 0}, {2, 0, 1}, {0, 2, 1}, {2, 1, 0}, {1, 0, 2}};
+constexpr int kStartEvenPerms = 3;
 
-// Keeps the candidate (quaternion times 2, exact) if its objective is larger;
-// ties keep the earlier candidate, so the choice is deterministic.
+// The best of the 24 candidates, per lane (the first of equals, in the order
+// of kStartPerm). The loop over the permutations keeps the winner's entries
+// and columns, so the matrix is assembled once at the end.
 template <typename L>
-inline void keep_better(typename L::V value, int qw, int qx, int qy, int qz, typename L::V& best,
-                        typename L::V best_q[4]) {
+inline Mat3<typename L::V> best_start_rotation(const Mat3<typename L::V>& A) {
   using V = typename L::V;
-  const typename L::Mask better = L::gt(value, best);
-  best = L::select(better, value, best);
-  const int q[4] = {qw, qx, qy, qz};
-  for (int i = 0; i < 4; ++i) best_q[i] = L::select(better, V(q[i]), best_q[i]);
-}
-
-// The best of the 12 candidates, per lane.
-template <typename L>
-inline Mat3<typename L::V> best_start_rotation(const Mat3<typename L::V>& M) {
-  using V = typename L::V;
-  V K[16];
-  horn_matrix(M, K);
-  V best = K[0];  // the identity, q = e_w
-  V q[4] = {V(2), V(0), V(0), V(0)};
-  keep_better<L>(K[5], 0, 2, 0, 0, best, q);   // half-turns about x, y, z
-  keep_better<L>(K[10], 0, 0, 2, 0, best, q);
-  keep_better<L>(K[15], 0, 0, 0, 2, best, q);
-  keep_better<L>(third_turn_objective<+1, +1, +1>(K), 1, +1, +1, +1, best, q);
-  keep_better<L>(third_turn_objective<-1, +1, +1>(K), 1, -1, +1, +1, best, q);
-  keep_better<L>(third_turn_objective<+1, -1, +1>(K), 1, +1, -1, +1, best, q);
-  keep_better<L>(third_turn_objective<-1, -1, +1>(K), 1, -1, -1, +1, best, q);
-  keep_better<L>(third_turn_objective<+1, +1, -1>(K), 1, +1, +1, -1, best, q);
-  keep_better<L>(third_turn_objective<-1, +1, -1>(K), 1, -1, +1, -1, best, q);
-  keep_better<L>(third_turn_objective<+1, -1, -1>(K), 1, +1, -1, -1, best, q);
-  keep_better<L>(third_turn_objective<-1, -1, -1>(K), 1, -1, -1, -1, best, q);
-  const V h(0.5);
-  return quaternion_rotation(h * q[0], h * q[1], h * q[2], h * q[3]);
+  using Mask = typename L::Mask;
+  V best(0), odd_perm(0), entry[3], column[3];
+#pragma GCC unroll 6
+  for (int p = 0; p < 6; ++p) {
+    const V x = A(0, kStartPerm[p][0]), y = A(1, kStartPerm[p][1]), z = A(2, kStartPerm[p][2]);
+    const V a = L::abs(x), b = L::abs(y), c = L::abs(z);
+    const Mask odd_negatives =
+        L::mask_xor(L::mask_xor(L::lt(x, V(0)), L::lt(y, V(0))), L::lt(z, V(0)));
+    const Mask flip = p < kStartEvenPerms ? odd_negatives : L::mask_not(odd_negatives);
+    const V sum = (a + b) + c;
+    const V value = L::select(flip, mul_add(V(-2), L::min(L::min(a, b), c), sum), sum);
+    const Mask better = p == 0 ? L::all_true() : L::gt(value, best);
+    best = L::select(better, value, best);
+    odd_perm = L::select(better, V(p < kStartEvenPerms ? 0 : 1), odd_perm);
+    const V xyz[3] = {x, y, z};
+    for (int i = 0; i < 3; ++i) {
+      entry[i] = L::select(better, xyz[i], entry[i]);
+      column[i] = L::select(better, V(kStartPerm[p][i]), column[i]);
+    }
+  }
+  // In row i, the sign of its entry, flipped in the row of the smallest entry
+  // (the first of equals) where det would be -1.
+  V size[3];
+  Mask odd_negatives = L::gt(odd_perm, V(0));
+  for (int i = 0; i < 3; ++i) {
+    size[i] = L::abs(entry[i]);
+    odd_negatives = L::mask_xor(odd_negatives, L::lt(entry[i], V(0)));
+  }
+  const Mask flip = odd_negatives;  // negatives' parity differs from the permutation's
+  const Mask smallest0 = L::mask_and(L::mask_not(L::gt(size[0], size[1])), L::mask_not(L::gt(size[0], size[2])));
+  const Mask smallest1 = L::mask_and(L::mask_not(smallest0), L::mask_not(L::gt(size[1], size[2])));
+  const Mask smallest[3] = {smallest0, smallest1, L::mask_not(L::mask_or(smallest0, smallest1))};
+  Mat3<V> R;
+  for (int i = 0; i < 3; ++i) {
+    const V sign = L::select(L::lt(entry[i], V(0)), V(-1), V(1));
+    const V s = L::select(L::mask_and(flip, smallest[i]), V(0) - sign, sign);
+    for (int j = 0; j < 3; ++j) R(i, j) = L::select(L::eq(column[i], V(j)), s, V(0));
+  }
+  return R;
 }
 
 }  // namespace

@@ -43,6 +43,7 @@ struct ScalarLanes {
   static Mask mask_and(Mask a, Mask b) { return a && b; }
   static Mask mask_or(Mask a, Mask b) { return a || b; }
   static Mask mask_not(Mask a) { return !a; }
+  static Mask mask_xor(Mask a, Mask b) { return a != b; }
   static Mask all_true() { return true; }
   static Mask all_false() { return false; }
   static bool all(Mask m) { return m; }
@@ -74,6 +75,7 @@ struct VectorLanes {
   static Mask mask_and(Mask a, Mask b) { return a & b; }
   static Mask mask_or(Mask a, Mask b) { return a | b; }
   static Mask mask_not(Mask a) { return a ^ all_true(); }
+  static Mask mask_xor(Mask a, Mask b) { return a ^ b; }
   static Mask all_true() { return V(T(0)) == V(T(0)); }
   static Mask all_false() { return V(T(0)) != V(T(0)); }
   // zero_mask() has bit i set where lane i is +-0, i.e. where the mask is clear.

@@ -58,14 +58,17 @@ TORCHROT_INLINE typename L::Mask is_maximum(const Mat3<typename L::V>& S, typena
 template <typename V>
 TORCHROT_INLINE V orthonormality_deviation2(const Mat3<V>& G) {
   const V d0 = G(0, 0) - V(1), d1 = G(1, 1) - V(1), d2 = G(2, 2) - V(1);
-  const V off = G(0, 1) * G(0, 1) + G(0, 2) * G(0, 2) + G(1, 2) * G(1, 2);
-  return d0 * d0 + d1 * d1 + d2 * d2 + V(2) * off;
+  const V off = dot3(G(0, 1), G(0, 1), G(0, 2), G(0, 2), G(1, 2), G(1, 2));
+  return mul_add(d0, d0, mul_add(d1, d1, mul_add(d2, d2, V(2) * off)));
 }
 
 template <typename V>
 TORCHROT_INLINE V determinant(const Mat3<V>& R) {
-  return R(0, 0) * (R(1, 1) * R(2, 2) - R(1, 2) * R(2, 1)) - R(0, 1) * (R(1, 0) * R(2, 2) - R(1, 2) * R(2, 0)) +
-         R(0, 2) * (R(1, 0) * R(2, 1) - R(1, 1) * R(2, 0));
+  // Expansion along the first row, the cofactors as a b - c d (cayley.h).
+  const V c0 = mul_add(R(1, 1), R(2, 2), -(R(1, 2) * R(2, 1)));
+  const V c1 = mul_add(R(1, 2), R(2, 0), -(R(1, 0) * R(2, 2)));
+  const V c2 = mul_add(R(1, 0), R(2, 1), -(R(1, 1) * R(2, 0)));
+  return dot3(R(0, 0), c0, R(0, 1), c1, R(0, 2), c2);
 }
 
 // A warm start R0, checked: `finite` where all its entries are finite, `bad`
