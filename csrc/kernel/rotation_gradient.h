@@ -55,9 +55,9 @@ template <typename V>
 inline Mat3<V> times_cross(const Mat3<V>& R, const Vec3<V>& u) {
   Mat3<V> out;
   for (int r = 0; r < 3; ++r) {
-    out(r, 0) = R(r, 1) * u.z - R(r, 2) * u.y;
-    out(r, 1) = R(r, 2) * u.x - R(r, 0) * u.z;
-    out(r, 2) = R(r, 0) * u.y - R(r, 1) * u.x;
+    out(r, 0) = mul_add(R(r, 1), u.z, -(R(r, 2) * u.y));
+    out(r, 1) = mul_add(R(r, 2), u.x, -(R(r, 0) * u.z));
+    out(r, 2) = mul_add(R(r, 0), u.y, -(R(r, 1) * u.x));
   }
   return out;
 }
@@ -81,7 +81,7 @@ inline Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const 
   Mat3<V> A;  // M / max |M_ij|
   for (int k = 0; k < 9; ++k) A.a[k] = (M.a[k] * lift) * inv_max;
   V frob2(0);
-  for (int k = 0; k < 9; ++k) frob2 = frob2 + A.a[k] * A.a[k];
+  for (int k = 0; k < 9; ++k) frob2 = mul_add(A.a[k], A.a[k], frob2);
   const V frob = L::select(zero, V(1), L::sqrt(frob2));  // |A|_F in [1, 3]
   // S = R^T M / |M|_F, symmetrised; K = tr(S) I - S.
   const Mat3<V> S = transpose_times(R, A);
@@ -109,18 +109,20 @@ inline Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const 
   //   adj(K + i lambda I) = (adj K - lambda^2 I) + i lambda (tr(K) I - K),
   //   det(K + i lambda I) = (det K - lambda^2 tr K) + i lambda (c2 - lambda^2) = a + i b,
   // so u = (a (adj K - lambda^2) g + b lambda (tr(K) g - K g)) / (a^2 + b^2).
-  const V c00 = k11 * k22 - k12 * k12, c01 = k02 * k12 - k01 * k22, c02 = k01 * k12 - k02 * k11;
-  const V c11 = k00 * k22 - k02 * k02, c12 = k01 * k02 - k00 * k12, c22 = k00 * k11 - k01 * k01;
-  const V det_k = k00 * c00 + k01 * c01 + k02 * c02;
+  // (Products fused as in cayley.h's cofactors and mat3.h's dot3.)
+  const V c00 = mul_add(k11, k22, -(k12 * k12)), c01 = mul_add(k02, k12, -(k01 * k22));
+  const V c02 = mul_add(k01, k12, -(k02 * k11)), c11 = mul_add(k00, k22, -(k02 * k02));
+  const V c12 = mul_add(k01, k02, -(k00 * k12)), c22 = mul_add(k00, k11, -(k01 * k01));
+  const V det_k = dot3(k00, c00, k01, c01, k02, c02);
   const V trace_k = k00 + k11 + k22;
   const V lambda(damping), lambda2(damping * damping);
   const V a = det_k - lambda2 * trace_k;
   const V b = lambda * (c00 + c11 + c22 - lambda2);
-  const Vec3<V> adj_g{c00 * g.x + c01 * g.y + c02 * g.z, c01 * g.x + c11 * g.y + c12 * g.z,
-                      c02 * g.x + c12 * g.y + c22 * g.z};
-  const Vec3<V> shift_g{trace_k * g.x - (k00 * g.x + k01 * g.y + k02 * g.z),
-                        trace_k * g.y - (k01 * g.x + k11 * g.y + k12 * g.z),
-                        trace_k * g.z - (k02 * g.x + k12 * g.y + k22 * g.z)};
+  const Vec3<V> adj_g{dot3(c00, g.x, c01, g.y, c02, g.z), dot3(c01, g.x, c11, g.y, c12, g.z),
+                      dot3(c02, g.x, c12, g.y, c22, g.z)};
+  const Vec3<V> shift_g{mul_add(trace_k, g.x, -dot3(k00, g.x, k01, g.y, k02, g.z)),
+                        mul_add(trace_k, g.y, -dot3(k01, g.x, k11, g.y, k12, g.z)),
+                        mul_add(trace_k, g.z, -dot3(k02, g.x, k12, g.y, k22, g.z))};
   // Divide by a^2 + b^2 after scaling a, b by 1 / max(|a|, |b|): no underflow
   // of the squares. With lambda = 0 and K singular in floating point (or
   // max(|a|, |b|) below the smallest normal number, where 1 / it overflows)
@@ -130,7 +132,7 @@ inline Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const 
   const auto solvable = L::gt(ab_max, V(std::numeric_limits<T>::min()));
   const V inv_ab_max = L::select(solvable, V(1) / ab_max, V(0));
   const V as = a * inv_ab_max, bs = b * inv_ab_max;
-  const V norm2 = L::select(solvable, as * as + bs * bs, V(1));  // in [1, 2]; 1 where dropped (as = bs = 0)
+  const V norm2 = L::select(solvable, mul_add(as, as, bs * bs), V(1));  // in [1, 2]; 1 where dropped (as = bs = 0)
   const V weight_adj = as * inv_ab_max / norm2;  // a / (a^2 + b^2)
   const V weight_shift = bs * inv_ab_max / norm2 * lambda;
   const V huge(std::numeric_limits<T>::max());
