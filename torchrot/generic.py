@@ -255,13 +255,12 @@ def _best_start_rotation(A):
     of det +1) for tr(P^T A), the first of equals (cold_start.h, step by
     step: each permutation with the signs of its entries, the smallest one
     flipped where det would be -1)."""
-    magnitude = [a.abs() for a in A]
-    negative = [a < 0 for a in A]
     best = winner = None
     for p, col in enumerate(_START_PERMS):
-        a, b, c = magnitude[col[0]], magnitude[3 + col[1]], magnitude[6 + col[2]]
-        odd_negatives = negative[col[0]] ^ negative[3 + col[1]] ^ negative[6 + col[2]]
-        flip = odd_negatives if p < 3 else ~odd_negatives
+        x, y, z = A[col[0]], A[3 + col[1]], A[6 + col[2]]
+        a, b, c = x.abs(), y.abs(), z.abs()
+        product = (x * y) * z
+        flip = product < 0 if p < 3 else product > 0
         total = (a + b) + c
         value = torch.where(flip, total - 2 * torch.minimum(torch.minimum(a, b), c), total)
         if p == 0:

@@ -40,9 +40,12 @@ inline Mat3<typename L::V> best_start_rotation(const Mat3<typename L::V>& A) {
   for (int p = 0; p < 6; ++p) {
     const V x = A(0, kStartPerm[p][0]), y = A(1, kStartPerm[p][1]), z = A(2, kStartPerm[p][2]);
     const V a = L::abs(x), b = L::abs(y), c = L::abs(z);
-    const Mask odd_negatives =
-        L::mask_xor(L::mask_xor(L::lt(x, V(0)), L::lt(y, V(0))), L::lt(z, V(0)));
-    const Mask flip = p < kStartEvenPerms ? odd_negatives : L::mask_not(odd_negatives);
+    // The signs of x, y, z give det -1 (even permutation, product < 0; odd,
+    // product > 0). A zero entry's sign is free: product 0, no flip, and
+    // indeed none is needed. (A product that underflows to 0 skips a flip of
+    // a negligible entry: only this estimate is off, by twice that entry.)
+    const V product = (x * y) * z;
+    const Mask flip = p < kStartEvenPerms ? L::lt(product, V(0)) : L::gt(product, V(0));
     const V sum = (a + b) + c;
     const V value = L::select(flip, mul_add(V(-2), L::min(L::min(a, b), c), sum), sum);
     const Mask better = p == 0 ? L::all_true() : L::gt(value, best);

@@ -42,23 +42,28 @@ TORCHROT_INLINE T mul_add(T a, T b, T c) {
   return std::fma(a, b, c);
 }
 
+// Whether this object's at::vec::Vectorized<T> is ATen's generic one (arrays
+// and loops: x86-64's default object, and any target ATen has no SIMD
+// specialisation for here) rather than AVX2, AVX-512 or NEON.
+#if defined(CPU_CAPABILITY_AVX2) || defined(CPU_CAPABILITY_AVX512) || defined(__aarch64__)
+constexpr bool kGenericVectorized = false;
+#else
+constexpr bool kGenericVectorized = true;
+#endif
+
+// Whether mul_add on this object's Vectorized<T> rounds once, as the scalar
+// kernel does: ATen's generic fmadd is a * b + c.
+constexpr bool kFusedMultiplyAdd = !kGenericVectorized;
+
 template <typename T>
 TORCHROT_INLINE at::vec::Vectorized<T> mul_add(const at::vec::Vectorized<T>& a, const at::vec::Vectorized<T>& b,
                                                const at::vec::Vectorized<T>& c) {
-  return at::vec::fmadd(a, b, c);
+  if constexpr (kGenericVectorized) {
+    return a * b + c;  // at::vec::fmadd's own generic definition, written inline (GCC left it out of line)
+  } else {
+    return at::vec::fmadd(a, b, c);
+  }
 }
-
-// Whether mul_add on this object's Vectorized<T> rounds once, as the scalar
-// kernel does (false only for x86-64's portable default object).
-#if defined(__x86_64__) || defined(_M_X64)
-#if defined(CPU_CAPABILITY_AVX2) || defined(CPU_CAPABILITY_AVX512)
-constexpr bool kFusedMultiplyAdd = true;
-#else
-constexpr bool kFusedMultiplyAdd = false;
-#endif
-#else
-constexpr bool kFusedMultiplyAdd = true;
-#endif
 
 }  // namespace
 }  // namespace CPU_CAPABILITY
