@@ -117,13 +117,12 @@ TORCHROT_INLINE CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
   const StepSystem<V> H(S, c);
   const V h00 = H.h00, h11 = H.h11, h22 = H.h22, h01 = H.h01, h02 = H.h02, h12 = H.h12;
 
-  // a b - c d as mul_add(a, b, -(c d)): one product rounded, as in dot3.
-  const V c00 = mul_add(h11, h22, -(h12 * h12));
-  const V c01 = mul_add(h02, h12, -(h01 * h22));
-  const V c02 = mul_add(h01, h12, -(h02 * h11));
-  const V c11 = mul_add(h00, h22, -(h02 * h02));
-  const V c12 = mul_add(h01, h02, -(h00 * h12));
-  const V c22 = mul_add(h00, h11, -(h01 * h01));
+  const V c00 = diff_of_products(h11, h22, h12, h12);
+  const V c01 = diff_of_products(h02, h12, h01, h22);
+  const V c02 = diff_of_products(h01, h12, h02, h11);
+  const V c11 = diff_of_products(h00, h22, h02, h02);
+  const V c12 = diff_of_products(h01, h02, h00, h12);
+  const V c22 = diff_of_products(h00, h11, h01, h01);
 
   CayleyStep<V> step;
   step.d = dot3(h00, c00, h01, c01, h02, c02);

@@ -4,8 +4,8 @@
 // `at::vec::Vectorized<T>` holding one matrix entry of several matrices.  The
 // code below only uses +, -, *, / and mul_add (mul_add.h) so it is valid for
 // both.  Matrices are row-major: entry (r, c) is `a[3 * r + c]`.  Sums of three
-// products are evaluated as mul_add(a0, b0, mul_add(a1, b1, a2 * b2)): the
-// same order everywhere, so every kernel object rounds alike.
+// products (dot3) and differences of two (diff_of_products) are evaluated in
+// one order everywhere, so every kernel object rounds alike.
 #pragma once
 
 #include <cstdint>
@@ -29,6 +29,13 @@ struct Mat3 {
 template <typename V>
 TORCHROT_INLINE V dot3(const V& a0, const V& b0, const V& a1, const V& b1, const V& a2, const V& b2) {
   return mul_add(a0, b0, mul_add(a1, b1, a2 * b2));
+}
+
+// a b - c d, the kernel's one evaluation order for it (cofactors, cross
+// products): only c d is rounded before the fused step.
+template <typename V>
+TORCHROT_INLINE V diff_of_products(const V& a, const V& b, const V& c, const V& d) {
+  return mul_add(a, b, -(c * d));
 }
 
 // Returns A^T B.

@@ -4,8 +4,8 @@
 // Why. A Cayley step is mostly sums of products (S = R^T A, Cramer's rule,
 // the Cayley map, R Q, the Newton-Schulz clean-up): fused, they cost one
 // instruction instead of two and round once instead of twice. Measured on
-// Zen 4 (AVX-512, float32, 1 thread, recorded ARAP data): one-step 11.8 ->
-// 9.8 ns/matrix, converged warm 19.2 -> 16.3.
+// Zen 4 (AVX-512, float32, 1 thread, recorded ARAP data, out=): one-step 11.8
+// -> 10.3-10.7 ns/matrix, converged warm 19.1 -> 17.2.
 //
 // Where it is fused. Results are bit-identical across kernel objects only if
 // each object rounds the same way, so the choice is per type, never left to
@@ -16,8 +16,8 @@
 //    has it).
 //  * at::vec::Vectorized<T>: at::vec::fmadd, which ATen implements with the
 //    fused instruction for AVX2, AVX-512 and NEON (aarch64's default object).
-//    For x86-64's default object (SSE2, for CPUs without AVX2 and FMA) it is
-//    a * b + c, two roundings: emulating fma there would cost tens of
+//    For ATen's generic Vectorized (x86-64's default object, for CPUs without
+//    AVX2 and FMA; kGenericVectorized) it is a * b + c, two roundings: emulating fma there would cost tens of
 //    nanoseconds per operation (glibc's software fmaf: 22 ns, fma: 98 ns on
 //    Zen 4), slower than an SVD. That object is therefore the one kernel whose
 //    results differ from the scalar kernel's, by rounding (see

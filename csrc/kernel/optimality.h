@@ -64,10 +64,10 @@ TORCHROT_INLINE V orthonormality_deviation2(const Mat3<V>& G) {
 
 template <typename V>
 TORCHROT_INLINE V determinant(const Mat3<V>& R) {
-  // Expansion along the first row, the cofactors as a b - c d (cayley.h).
-  const V c0 = mul_add(R(1, 1), R(2, 2), -(R(1, 2) * R(2, 1)));
-  const V c1 = mul_add(R(1, 2), R(2, 0), -(R(1, 0) * R(2, 2)));
-  const V c2 = mul_add(R(1, 0), R(2, 1), -(R(1, 1) * R(2, 0)));
+  // Expansion along the first row.
+  const V c0 = diff_of_products(R(1, 1), R(2, 2), R(1, 2), R(2, 1));
+  const V c1 = diff_of_products(R(1, 2), R(2, 0), R(1, 0), R(2, 2));
+  const V c2 = diff_of_products(R(1, 0), R(2, 1), R(1, 1), R(2, 0));
   return dot3(R(0, 0), c0, R(0, 1), c1, R(0, 2), c2);
 }
 

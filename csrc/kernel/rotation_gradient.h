@@ -55,9 +55,9 @@ template <typename V>
 inline Mat3<V> times_cross(const Mat3<V>& R, const Vec3<V>& u) {
   Mat3<V> out;
   for (int r = 0; r < 3; ++r) {
-    out(r, 0) = mul_add(R(r, 1), u.z, -(R(r, 2) * u.y));
-    out(r, 1) = mul_add(R(r, 2), u.x, -(R(r, 0) * u.z));
-    out(r, 2) = mul_add(R(r, 0), u.y, -(R(r, 1) * u.x));
+    out(r, 0) = diff_of_products(R(r, 1), u.z, R(r, 2), u.y);
+    out(r, 1) = diff_of_products(R(r, 2), u.x, R(r, 0), u.z);
+    out(r, 2) = diff_of_products(R(r, 0), u.y, R(r, 1), u.x);
   }
   return out;
 }
@@ -109,10 +109,9 @@ inline Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const 
   //   adj(K + i lambda I) = (adj K - lambda^2 I) + i lambda (tr(K) I - K),
   //   det(K + i lambda I) = (det K - lambda^2 tr K) + i lambda (c2 - lambda^2) = a + i b,
   // so u = (a (adj K - lambda^2) g + b lambda (tr(K) g - K g)) / (a^2 + b^2).
-  // (Products fused as in cayley.h's cofactors and mat3.h's dot3.)
-  const V c00 = mul_add(k11, k22, -(k12 * k12)), c01 = mul_add(k02, k12, -(k01 * k22));
-  const V c02 = mul_add(k01, k12, -(k02 * k11)), c11 = mul_add(k00, k22, -(k02 * k02));
-  const V c12 = mul_add(k01, k02, -(k00 * k12)), c22 = mul_add(k00, k11, -(k01 * k01));
+  const V c00 = diff_of_products(k11, k22, k12, k12), c01 = diff_of_products(k02, k12, k01, k22);
+  const V c02 = diff_of_products(k01, k12, k02, k11), c11 = diff_of_products(k00, k22, k02, k02);
+  const V c12 = diff_of_products(k01, k02, k00, k12), c22 = diff_of_products(k00, k11, k01, k01);
   const V det_k = dot3(k00, c00, k01, c01, k02, c02);
   const V trace_k = k00 + k11 + k22;
   const V lambda(damping), lambda2(damping * damping);
