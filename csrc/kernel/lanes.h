@@ -10,8 +10,10 @@
 
 #include <ATen/cpu/vec/vec.h>
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
+#include <type_traits>
 
 #include "force_inline.h"
 #include "mat3.h"
@@ -36,6 +38,7 @@ struct ScalarLanes {
   static V sqrt(V x) { return std::sqrt(x); }
   static V max(V a, V b) { return (a != a || a > b) ? a : b; }  // NaN-propagating, as Vectorized
   static V min(V a, V b) { return (a != a || a < b) ? a : b; }
+  static V clamp(V x, V lo, V hi) { return std::min(std::max(x, lo), hi); }  // as at::vec::clamp
   static Mask lt(V a, V b) { return a < b; }
   static Mask gt(V a, V b) { return a > b; }
   static Mask eq(V a, V b) { return a == b; }
@@ -53,16 +56,18 @@ struct ScalarLanes {
   static void set_lane(V& v, int, T x) { v = x; }
 };
 
+// How VectorLanes holds a mask. By default as a vector with all bits set in
+// the selected lanes: Vectorized's own compares and blendv, which is what
+// AVX2's and NEON's compare and blend instructions read and write.
 template <typename T>
-struct VectorLanes {
-  using Scalar = T;
+struct VectorMasks {
   using V = at::vec::Vectorized<T>;
-  using Mask = V;  // all bits set in selected lanes
+  using Mask = V;
   static constexpr int width = V::size();
-  static constexpr bool fused_multiply_add = kFusedMultiplyAdd;  // mul_add.h
 
-  static V load(const T* p) { return V::loadu(p); }
-  static void store(V v, T* p) { v.store(p); }
+  static Mask lt(V a, V b) { return a < b; }
+  static Mask gt(V a, V b) { return a > b; }
+  static Mask eq(V a, V b) { return a == b; }
   static V select(Mask m, V if_true, V if_false) {
     if constexpr (kGenericVectorized) {
       // Bitwise: the generic blendv tests each lane's mask with a branch,
@@ -73,14 +78,8 @@ struct VectorLanes {
       return V::blendv(if_false, if_true, m);
     }
   }
-  static V abs(V x) { return x.abs(); }
-  static V sqrt(V x) { return x.sqrt(); }
-  static V max(V a, V b) { return at::vec::maximum(a, b); }  // NaN-propagating
+  static V max(V a, V b) { return at::vec::maximum(a, b); }
   static V min(V a, V b) { return at::vec::minimum(a, b); }
-  static Mask lt(V a, V b) { return a < b; }
-  static Mask gt(V a, V b) { return a > b; }
-  static Mask eq(V a, V b) { return a == b; }
-  static Mask is_finite(V x) { return x.abs() < V(std::numeric_limits<T>::infinity()); }
   static Mask mask_and(Mask a, Mask b) { return a & b; }
   static Mask mask_or(Mask a, Mask b) { return a | b; }
   static Mask mask_not(Mask a) { return a ^ all_true(); }
@@ -91,6 +90,94 @@ struct VectorLanes {
   static bool all(Mask m) { return m.zero_mask() == 0; }
   static bool any(Mask m) { return m.zero_mask() != (1 << width) - 1; }
   static bool lane_set(Mask m, int i) { return !((m.zero_mask() >> i) & 1); }
+};
+
+#if defined(CPU_CAPABILITY_AVX512)
+// AVX-512 compares write a mask register (one bit per lane) and its blends
+// read one. Vectorized<T> returns compares as vectors, so every compare cost
+// a vpmovm2d and every select a vpcmpeqd back, and mask logic ran on vectors:
+// ~100 of the ~1,000 instructions of a one-step block. Here a mask stays a
+// __mmask16 / __mmask8, with the same predicates as Vectorized's operators
+// (ordered, quiet), so every value is the same bit for bit.
+template <typename T>
+struct RegisterMasks {
+  using V = at::vec::Vectorized<T>;
+  using Mask = std::conditional_t<sizeof(T) == 4, __mmask16, __mmask8>;
+  static constexpr int width = V::size();
+
+  template <int kPredicate>
+  static Mask compare(V a, V b) {
+    if constexpr (sizeof(T) == 4) {
+      return _mm512_cmp_ps_mask(a, b, kPredicate);
+    } else {
+      return _mm512_cmp_pd_mask(a, b, kPredicate);
+    }
+  }
+  static Mask lt(V a, V b) { return compare<_CMP_LT_OQ>(a, b); }
+  static Mask gt(V a, V b) { return compare<_CMP_GT_OQ>(a, b); }
+  static Mask eq(V a, V b) { return compare<_CMP_EQ_OQ>(a, b); }
+  static V select(Mask m, V if_true, V if_false) {
+    if constexpr (sizeof(T) == 4) {
+      return _mm512_mask_blend_ps(m, if_false, if_true);
+    } else {
+      return _mm512_mask_blend_pd(m, if_false, if_true);
+    }
+  }
+  // at::vec::maximum / minimum (IEEE maximum / minimum: all bits set where
+  // either operand is NaN) without the round trip through a vector mask.
+  static V max(V a, V b) {
+    if constexpr (sizeof(T) == 4) {
+      return select(compare<_CMP_UNORD_Q>(a, b), all_bits(), _mm512_max_ps(a, b));
+    } else {
+      return select(compare<_CMP_UNORD_Q>(a, b), all_bits(), _mm512_max_pd(a, b));
+    }
+  }
+  static V min(V a, V b) {
+    if constexpr (sizeof(T) == 4) {
+      return select(compare<_CMP_UNORD_Q>(a, b), all_bits(), _mm512_min_ps(a, b));
+    } else {
+      return select(compare<_CMP_UNORD_Q>(a, b), all_bits(), _mm512_min_pd(a, b));
+    }
+  }
+  static Mask mask_and(Mask a, Mask b) { return static_cast<Mask>(a & b); }
+  static Mask mask_or(Mask a, Mask b) { return static_cast<Mask>(a | b); }
+  static Mask mask_not(Mask a) { return static_cast<Mask>(~a); }
+  static Mask mask_xor(Mask a, Mask b) { return static_cast<Mask>(a ^ b); }
+  static Mask all_true() { return static_cast<Mask>(~Mask(0)); }  // 16 or 8 bits: one per lane
+  static Mask all_false() { return Mask(0); }
+  static bool all(Mask m) { return m == all_true(); }
+  static bool any(Mask m) { return m != 0; }
+  static bool lane_set(Mask m, int i) { return (m >> i) & 1; }
+
+ private:
+  static V all_bits() { return V(T(0)) == V(T(0)); }
+};
+template <typename T>
+using Masks = RegisterMasks<T>;
+#else
+template <typename T>
+using Masks = VectorMasks<T>;
+#endif
+
+template <typename T>
+struct VectorLanes : Masks<T> {
+  using Scalar = T;
+  using V = at::vec::Vectorized<T>;
+  using Mask = typename Masks<T>::Mask;
+  static constexpr int width = V::size();
+  static constexpr bool fused_multiply_add = kFusedMultiplyAdd;  // mul_add.h
+
+  static V load(const T* p) { return V::loadu(p); }
+  static void store(V v, T* p) { v.store(p); }
+  static V abs(V x) { return x.abs(); }
+  static V sqrt(V x) { return x.sqrt(); }
+  // x limited to [lo, hi] (lo <= hi, neither NaN); a NaN x is returned as it
+  // is. One max and one min instruction where there are SIMD ones (unlike
+  // max / min, which test for NaN), and the same values in every object:
+  // x86's max(lo, x) and min(hi, x) return x when it is NaN, as NEON's and
+  // std::max / std::min (the generic one) do.
+  static V clamp(V x, V lo, V hi) { return at::vec::clamp(x, lo, hi); }
+  static Mask is_finite(V x) { return Masks<T>::lt(x.abs(), V(std::numeric_limits<T>::infinity())); }
   static T lane(V v, int i) {
     T buf[width];
     v.store(buf);

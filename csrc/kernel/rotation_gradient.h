@@ -30,6 +30,7 @@
 #include <cmath>
 #include <limits>
 
+#include "force_inline.h"
 #include "lanes.h"
 #include "mat3.h"
 
@@ -66,7 +67,7 @@ inline Mat3<V> times_cross(const Mat3<V>& R, const Vec3<V>& u) {
 // A u = vex(R^T X - X^T R), A = tr(S) I - sym(S), S = R^T M, for X = G (the
 // backward) or X = dM (the forward-mode derivative). `damping` is eps.
 template <typename L>
-inline Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const Mat3<typename L::V>& R,
+TORCHROT_INLINE Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const Mat3<typename L::V>& R,
                                             const Mat3<typename L::V>& M, typename L::Scalar damping) {
   using T = typename L::Scalar;
   using V = typename L::V;
@@ -135,7 +136,7 @@ inline Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const 
   const V weight_adj = as * inv_ab_max / norm2;  // a / (a^2 + b^2)
   const V weight_shift = bs * inv_ab_max / norm2 * lambda;
   const V huge(std::numeric_limits<T>::max());
-  auto saturate = [&huge](V x) { return L::min(L::max(x, V(0) - huge), huge); };
+  auto saturate = [&huge](V x) { return L::clamp(x, V(0) - huge, huge); };
   // Each term saturates on its own: a sum of two overflows is +-inf, never NaN.
   auto solve = [&](V adj, V gi, V shift) {
     return saturate(saturate(weight_adj * (adj - lambda2 * gi)) + saturate(weight_shift * shift));
@@ -146,7 +147,7 @@ inline Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const 
   // saturates at +-T_max (never inf, never 0 * inf = NaN).
   // (Saturating after the product with inv_frob: |A|_F may round below 1, and
   // T_max * inv_frob then overflowed to inf, and 0 * inf gave NaN.)
-  const V scale = L::min(lift * inv_max * inv_frob, huge);
+  const V scale = L::clamp(lift * inv_max * inv_frob, V(0), huge);
   const V x_up = L::select(x_huge, V(std::ldexp(T(1), kHalfRange)), V(1));
   Mat3<V> tangent = times_cross(R, u);
   for (int k = 0; k < 9; ++k) tangent.a[k] = saturate(saturate(tangent.a[k] * scale) * x_up);
