@@ -95,13 +95,16 @@ TORCHROT_INLINE Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& 
   const V k12 = -(S(1, 2) + S(2, 1)) * half_inv;
   // An X with entries above 2^(max_exponent / 2) is scaled down by that
   // power of two (exact) so that g and the products below cannot overflow;
-  // the result is scaled back, saturating.
-  V x_max(0);
-  for (int k = 0; k < 9; ++k) x_max = L::max(x_max, L::abs(X.a[k]));
+  // the result is scaled back, saturating. Rare, so only blocks with such a
+  // lane multiply (by 1 elsewhere: the same values).
   constexpr int kHalfRange = std::numeric_limits<T>::max_exponent / 2;
-  const auto x_huge = L::gt(x_max, V(std::ldexp(T(1), kHalfRange)));
-  Mat3<V> Xs;
-  for (int k = 0; k < 9; ++k) Xs.a[k] = X.a[k] * L::select(x_huge, V(std::ldexp(T(1), -kHalfRange)), V(1));
+  auto x_huge = L::all_false();
+  for (int k = 0; k < 9; ++k) x_huge = L::mask_or(x_huge, L::gt(L::abs(X.a[k]), V(std::ldexp(T(1), kHalfRange))));
+  const bool scaled = L::any(x_huge);
+  Mat3<V> Xs = X;
+  if (scaled) {
+    for (int k = 0; k < 9; ++k) Xs.a[k] = X.a[k] * L::select(x_huge, V(std::ldexp(T(1), -kHalfRange)), V(1));
+  }
   const Vec3<V> g = skew_axial(R, Xs);
   // u = (K^2 + lambda^2 I)^-1 K g = Re (K + i lambda I)^-1 g, evaluated in
   // the second form: forming K^2 would square K's condition number (float32
@@ -148,9 +151,12 @@ TORCHROT_INLINE Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& 
   // (Saturating after the product with inv_frob: |A|_F may round below 1, and
   // T_max * inv_frob then overflowed to inf, and 0 * inf gave NaN.)
   const V scale = L::clamp(lift * inv_max * inv_frob, V(0), huge);
-  const V x_up = L::select(x_huge, V(std::ldexp(T(1), kHalfRange)), V(1));
   Mat3<V> tangent = times_cross(R, u);
-  for (int k = 0; k < 9; ++k) tangent.a[k] = saturate(saturate(tangent.a[k] * scale) * x_up);
+  for (int k = 0; k < 9; ++k) tangent.a[k] = saturate(tangent.a[k] * scale);
+  if (scaled) {
+    const V x_up = L::select(x_huge, V(std::ldexp(T(1), kHalfRange)), V(1));
+    for (int k = 0; k < 9; ++k) tangent.a[k] = saturate(tangent.a[k] * x_up);
+  }
   return tangent;
 }
 
