@@ -6,6 +6,7 @@
 // through a small buffer otherwise. Shared by the batched kernels.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 
 #include "../kernel/force_inline.h"
@@ -73,7 +74,14 @@ template <typename L, bool kContiguous>
 TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, const int64_t stride[3],
                                                int64_t first, int count) {
   Mat3<typename L::V> A;
-  if constexpr (L::width == 1) {  // the scalar path: one matrix, straight
+  if constexpr (kernel::IsPaired<L>::value) {  // two half blocks
+    using H = typename L::HalfLanes;
+    const Mat3<typename H::V> lo = load_block<H, kContiguous>(data, stride, first, std::min(count, H::width));
+    const Mat3<typename H::V> hi =
+        load_block<H, kContiguous>(data, stride, first + H::width, std::max(count - H::width, 0));
+    for (int k = 0; k < 9; ++k) A.a[k] = {lo.a[k], hi.a[k]};
+    return A;
+  } else if constexpr (L::width == 1) {  // the scalar path: one matrix, straight
     for (int k = 0; k < 9; ++k) A.a[k] = data[offset<kContiguous>(stride, first, k)];
     return A;
   } else {
@@ -102,7 +110,16 @@ TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, c
 template <typename L, bool kContiguous>
 TORCHROT_INLINE void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, const int64_t stride[3],
                                  int64_t first, int count) {
-  if constexpr (L::width == 1) {
+  if constexpr (kernel::IsPaired<L>::value) {
+    using H = typename L::HalfLanes;
+    Mat3<typename H::V> lo, hi;
+    for (int k = 0; k < 9; ++k) {
+      lo.a[k] = R.a[k].lo;
+      hi.a[k] = R.a[k].hi;
+    }
+    store_block<H, kContiguous>(lo, data, stride, first, std::min(count, H::width));
+    if (count > H::width) store_block<H, kContiguous>(hi, data, stride, first + H::width, count - H::width);
+  } else if constexpr (L::width == 1) {
     for (int k = 0; k < 9; ++k) data[offset<kContiguous>(stride, first, k)] = R.a[k];
   } else {
 #ifdef TORCHROT_HAVE_SIMD_TRANSPOSE

@@ -11,7 +11,7 @@ namespace torchrot {
 namespace cpu {
 
 const KernelTable& avx2_kernels() {
-  static const KernelTable table = make_kernel_table<kernel::VectorLanes>("avx2");
+  static const KernelTable table = make_kernel_table<kernel::VectorLanes, kernel::PairedVectorLanes>("avx2");
   return table;
 }
 

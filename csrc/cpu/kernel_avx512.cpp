@@ -11,7 +11,7 @@ namespace torchrot {
 namespace cpu {
 
 const KernelTable& avx512_kernels() {
-  static const KernelTable table = make_kernel_table<kernel::VectorLanes>("avx512");
+  static const KernelTable table = make_kernel_table<kernel::VectorLanes, kernel::PairedVectorLanes>("avx512");
   return table;
 }
 

@@ -12,16 +12,19 @@ namespace cpu {
 inline namespace CPU_CAPABILITY {
 namespace {
 
-template <template <typename> class Lanes>
+// TangentLanes: the lanes of the derivative kernel, which may differ from the
+// fit's (kernel::PairedLanes, see kernel_avx512.cpp).
+template <template <typename> class Lanes, template <typename> class TangentLanes = Lanes>
 KernelTable make_kernel_table(const char* name) {
+  static_assert(TangentLanes<float>::fused_multiply_add == Lanes<float>::fused_multiply_add);
   return KernelTable{name,
                      Lanes<float>::width,
                      Lanes<double>::width,
                      Lanes<float>::fused_multiply_add && Lanes<double>::fused_multiply_add,
                      &fit_batch<Lanes<float>>,
                      &fit_batch<Lanes<double>>,
-                     &tangent_batch<Lanes<float>>,
-                     &tangent_batch<Lanes<double>>,
+                     &tangent_batch<TangentLanes<float>>,
+                     &tangent_batch<TangentLanes<double>>,
                      &count_bad_warm_starts<Lanes<float>>,
                      &count_bad_warm_starts<Lanes<double>>};
 }
