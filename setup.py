@@ -14,7 +14,8 @@ Apple silicon, ...) scalar and default, where default is ATen's Vectorized<T>
 for that target (NEON on aarch64). csrc/cpu/kernel_table.h tests the same
 macros to reference the AVX objects only on x86-64. OpenMP (-fopenmp) is used
 where the compiler accepts it (not Apple clang: at::parallel_for is then
-serial). On x86-64 with GCC or clang the flags are those of the fixed list.
+serial). On x86-64 with GCC or clang the flags are those of the fixed list
+(and GCC_FLAGS where the compiler is GCC).
 """
 import glob
 import os
@@ -43,6 +44,12 @@ BASELINE_KERNELS = [  # (source, flags): every target
     ("csrc/cpu/kernel_scalar.cpp", ["-DCPU_CAPABILITY=SCALAR"]),
     ("csrc/cpu/kernel_default.cpp", ["-DCPU_CAPABILITY=DEFAULT", "-DCPU_CAPABILITY_DEFAULT"]),
 ]
+# GCC only: ATen's generic Vectorized (the default object) is arrays and
+# loops, so every +, * is a call unless inlined, and the fits are single large
+# functions: GCC stopped inlining them at its large-function-growth limit
+# (100%), which left ~140 calls per one-step block and made that kernel 30-60%
+# slower (measured on x86-64, after an unrelated change moved the limit).
+GCC_FLAGS = {"csrc/cpu/kernel_default.cpp": ["--param=large-function-growth=100000"]}
 X86_64_KERNELS = [  # x86-64 targets only
     ("csrc/cpu/kernel_avx2.cpp", ["-DCPU_CAPABILITY=AVX2", "-DCPU_CAPABILITY_AVX2", "-mavx2", "-mfma", "-mf16c"]),
     (
@@ -61,11 +68,14 @@ torchrot_target_x86_64
 #ifdef _OPENMP
 torchrot_openmp
 #endif
+#if defined(__GNUC__) && !defined(__clang__)
+torchrot_gcc
+#endif
 """
 
 
 def probe_target(compiler_so, flags):
-    """(x86_64, openmp) for this compiler command and flags, or None if the
+    """(x86_64, openmp, gcc) for this compiler command and flags, or None if the
     compiler cannot be asked (then the caller falls back to the host)."""
     if not compiler_so:
         return None
@@ -80,7 +90,7 @@ def probe_target(compiler_so, flags):
                 return None
             if result.returncode == 0:
                 out = result.stdout
-                return "torchrot_target_x86_64" in out, "torchrot_openmp" in out
+                return "torchrot_target_x86_64" in out, "torchrot_openmp" in out, "torchrot_gcc" in out
     return None
 
 
@@ -92,10 +102,10 @@ class BuildWithIsaKernels(BuildExtension):
         cxx = args["cxx"] if isinstance(args, dict) else args  # incl. torch's ABI flags
         probe = probe_target(getattr(self.compiler, "compiler_so", None), [f for f in cxx if f != "-fopenmp"])
         if probe is None:
-            x86_64, openmp = platform.machine().lower() in ("x86_64", "amd64"), False
+            x86_64, openmp, gcc = platform.machine().lower() in ("x86_64", "amd64"), False, False
             print(f"torchrot: could not run the compiler's preprocessor; building for {platform.machine()}, no OpenMP")
         else:
-            x86_64, openmp = probe
+            x86_64, openmp, gcc = probe
         if not openmp:
             for flags in (cxx, ext.extra_link_args):
                 while "-fopenmp" in flags:
@@ -110,7 +120,7 @@ class BuildWithIsaKernels(BuildExtension):
                 [source],
                 output_dir=self.build_temp,
                 include_dirs=ext.include_dirs,
-                extra_postargs=base + flags,
+                extra_postargs=base + flags + (GCC_FLAGS.get(source, []) if gcc else []),
                 depends=ext.depends,
             )
         ext.extra_objects = objects + list(ext.extra_objects or [])
