@@ -38,7 +38,7 @@ import torch
 import torchrot
 from torchrot.reference import GRADIENT_EPS, fit_rotation_backward_reference, rotation_svd
 from torchrot.testing import (CPU_KERNELS, WELL_CONDITIONED, bits, cpu_kernel, make_matrices, random_rotations,
-                              rotations)
+                              rotations, rounding_reference)
 
 X86_64 = platform.machine().lower() in ("x86_64", "amd64")
 DTYPES = (torch.float32, torch.float64)
@@ -212,6 +212,10 @@ def main() -> None:
                   flush=True)
         first = kernels[0]
         for kernel in kernels[1:]:
+            if rounding_reference(kernel) != first:  # x86-64's default kernel: tests/test_isa.py checks it
+                print(f"info: {tag}: {kernel} rounds a * b + c twice (csrc/kernel/mul_add.h): not compared "
+                      f"with {first}")
+                continue
             keys = [k for k in results if k.startswith(f"{tag}/{first}/") and not k.startswith("inputs/")]
             bad = [k for k in keys if not same_bits(results[k], results[k.replace(f"/{first}/", f"/{kernel}/", 1)])]
             check(f"{tag}: {kernel} bit-identical to {first}", not bad, f"{len(bad)} results differ, e.g. {bad[:3]}")
