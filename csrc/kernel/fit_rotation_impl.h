@@ -95,8 +95,7 @@ TORCHROT_INLINE LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<
   s.iterations = s.attempt_steps = s.escapes = V(0);
   s.switched = s.fallback = s.bad_init = L::all_false();
 
-  V max_abs(0);  // NaN if any entry is NaN
-  for (int k = 0; k < 9; ++k) max_abs = L::max(max_abs, L::abs(M.a[k]));
+  const V max_abs = max_abs_entry<L>(M);  // NaN if any entry is NaN
   Mask finite = L::is_finite(max_abs);
 
   // Scale to max |entry| = 1: the maximiser is unchanged and no product in a

@@ -73,8 +73,7 @@ TORCHROT_INLINE Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& 
   using V = typename L::V;
   // |M|_F without overflow or underflow: scale by the largest entry first
   // (lifting subnormal maxima exactly, as begin_fit does).
-  V max_abs(0);
-  for (int k = 0; k < 9; ++k) max_abs = L::max(max_abs, L::abs(M.a[k]));
+  const V max_abs = max_abs_entry<L>(M);  // NaN if any entry is NaN
   const V lift = L::select(L::lt(max_abs, V(std::numeric_limits<T>::min())),
                            V(std::ldexp(T(1), std::numeric_limits<T>::digits)), V(1));
   const auto zero = L::eq(max_abs, V(0));
