@@ -47,7 +47,8 @@ inline Mat3<typename L::V> best_start_rotation(const Mat3<typename L::V>& A) {
     const V product = (x * y) * z;
     const Mask flip = p < kStartEvenPerms ? L::lt(product, V(0)) : L::gt(product, V(0));
     const V sum = (a + b) + c;
-    const V value = L::select(flip, mul_add(V(-2), L::min(L::min(a, b), c), sum), sum);
+    // (min_number: a lane with a NaN entry does not run, whatever its start.)
+    const V value = L::select(flip, mul_add(V(-2), L::min_number(L::min_number(a, b), c), sum), sum);
     const Mask better = p == 0 ? L::all_true() : L::gt(value, best);
     best = L::select(better, value, best);
     odd_perm = L::select(better, V(p < kStartEvenPerms ? 0 : 1), odd_perm);

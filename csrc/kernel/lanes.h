@@ -39,7 +39,10 @@ struct ScalarLanes {
   static V max(V a, V b) { return (a != a || a > b) ? a : b; }  // NaN-propagating, as Vectorized
   static V min(V a, V b) { return (a != a || a < b) ? a : b; }
   static V clamp(V x, V lo, V hi) { return std::min(std::max(x, lo), hi); }  // as at::vec::clamp
+  // max / min of numbers: with a NaN operand the result is either operand (one
+  // instruction where max / min test for NaN). unordered: a or b is NaN.
   static V max_number(V a, V b) { return a > b ? a : b; }
+  static V min_number(V a, V b) { return a < b ? a : b; }
   static Mask unordered(V a, V b) { return a != a || b != b; }
   static Mask lt(V a, V b) { return a < b; }
   static Mask gt(V a, V b) { return a > b; }
@@ -83,6 +86,7 @@ struct VectorMasks {
   static V max(V a, V b) { return at::vec::maximum(a, b); }
   static V min(V a, V b) { return at::vec::minimum(a, b); }
   static V max_number(V a, V b) { return at::vec::clamp_min(a, b); }
+  static V min_number(V a, V b) { return at::vec::clamp_max(a, b); }
   static Mask unordered(V a, V b) { return mask_not(mask_and(a == a, b == b)); }
   static Mask mask_and(Mask a, Mask b) { return a & b; }
   static Mask mask_or(Mask a, Mask b) { return a | b; }
@@ -148,6 +152,13 @@ struct RegisterMasks {
       return _mm512_max_ps(a, b);
     } else {
       return _mm512_max_pd(a, b);
+    }
+  }
+  static V min_number(V a, V b) {
+    if constexpr (sizeof(T) == 4) {
+      return _mm512_min_ps(a, b);
+    } else {
+      return _mm512_min_pd(a, b);
     }
   }
   static Mask unordered(V a, V b) { return compare<_CMP_UNORD_Q>(a, b); }
@@ -256,6 +267,7 @@ struct PairedLanes {
   static V min(V a, V b) { return {Base::min(a.lo, b.lo), Base::min(a.hi, b.hi)}; }
   static V clamp(V x, V lo, V hi) { return {Base::clamp(x.lo, lo.lo, hi.lo), Base::clamp(x.hi, lo.hi, hi.hi)}; }
   static V max_number(V a, V b) { return {Base::max_number(a.lo, b.lo), Base::max_number(a.hi, b.hi)}; }
+  static V min_number(V a, V b) { return {Base::min_number(a.lo, b.lo), Base::min_number(a.hi, b.hi)}; }
   static Mask unordered(V a, V b) { return {Base::unordered(a.lo, b.lo), Base::unordered(a.hi, b.hi)}; }
   static Mask lt(V a, V b) { return {Base::lt(a.lo, b.lo), Base::lt(a.hi, b.hi)}; }
   static Mask gt(V a, V b) { return {Base::gt(a.lo, b.lo), Base::gt(a.hi, b.hi)}; }
