@@ -13,7 +13,7 @@ inline namespace CPU_CAPABILITY {
 namespace {
 
 // TangentLanes: the lanes of the derivative kernel, which may differ from the
-// fit's (kernel::PairedLanes, see kernel_avx512.cpp).
+// fit's (kernel::PairedVectorLanes in the AVX2 and AVX-512 objects).
 template <template <typename> class Lanes, template <typename> class TangentLanes = Lanes>
 KernelTable make_kernel_table(const char* name) {
   static_assert(TangentLanes<float>::fused_multiply_add == Lanes<float>::fused_multiply_add);

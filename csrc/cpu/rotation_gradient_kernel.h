@@ -2,7 +2,10 @@
 // with that file's instruction-set flags: out[i] = R[i] [u_i]x, the damped
 // solution of the optimality condition's linearisation
 // (kernel/rotation_gradient.h) for X[i] = dL/dR (backward) or dM (forward
-// mode). One pass over the batch in SIMD blocks; memory bound.
+// mode). One pass over the batch in SIMD blocks (paired blocks in the AVX
+// objects: kernel_object.h). Compute bound, not memory bound, where the batch
+// is in cache: ~8 ns per float32 matrix with AVX-512, against ~1 ns to read
+// and write its 144 bytes.
 #pragma once
 
 #include <ATen/Parallel.h>

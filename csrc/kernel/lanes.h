@@ -4,8 +4,11 @@
 // A lane type L provides the value type L::V (one matrix entry for each of
 // L::width matrices), a mask type L::Mask, and the few mask operations the
 // driver needs. ScalarLanes<T> is one matrix in plain T with bool masks (the
-// scalar path); VectorLanes<T> is at::vec::Vectorized<T> with bit masks (one
-// matrix per SIMD lane), compiled once per instruction set.
+// scalar path); VectorLanes<T> is at::vec::Vectorized<T> (one matrix per SIMD
+// lane), compiled once per instruction set, with its masks as vectors
+// (VectorMasks) or, with AVX-512, in mask registers (RegisterMasks);
+// PairedLanes<L> is two blocks of L as one, for code whose dependency chains
+// leave the floating-point units idle (the derivative kernel).
 #pragma once
 
 #include <ATen/cpu/vec/vec.h>

@@ -68,7 +68,7 @@ inline Mat3<V> times_cross(const Mat3<V>& R, const Vec3<V>& u) {
 // backward) or X = dM (the forward-mode derivative). `damping` is eps.
 template <typename L>
 TORCHROT_INLINE Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& X, const Mat3<typename L::V>& R,
-                                            const Mat3<typename L::V>& M, typename L::Scalar damping) {
+                                                     const Mat3<typename L::V>& M, typename L::Scalar damping) {
   using T = typename L::Scalar;
   using V = typename L::V;
   // |M|_F without overflow or underflow: scale by the largest entry first
