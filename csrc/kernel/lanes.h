@@ -136,20 +136,8 @@ struct RegisterMasks {
   }
   // at::vec::maximum / minimum (IEEE maximum / minimum: all bits set where
   // either operand is NaN) without the round trip through a vector mask.
-  static V max(V a, V b) {
-    if constexpr (sizeof(T) == 4) {
-      return select(compare<_CMP_UNORD_Q>(a, b), all_bits(), _mm512_max_ps(a, b));
-    } else {
-      return select(compare<_CMP_UNORD_Q>(a, b), all_bits(), _mm512_max_pd(a, b));
-    }
-  }
-  static V min(V a, V b) {
-    if constexpr (sizeof(T) == 4) {
-      return select(compare<_CMP_UNORD_Q>(a, b), all_bits(), _mm512_min_ps(a, b));
-    } else {
-      return select(compare<_CMP_UNORD_Q>(a, b), all_bits(), _mm512_min_pd(a, b));
-    }
-  }
+  static V max(V a, V b) { return select(unordered(a, b), all_bits(), max_number(a, b)); }
+  static V min(V a, V b) { return select(unordered(a, b), all_bits(), min_number(a, b)); }
   static V max_number(V a, V b) {
     if constexpr (sizeof(T) == 4) {
       return _mm512_max_ps(a, b);
