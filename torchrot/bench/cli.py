@@ -57,8 +57,8 @@ def parser() -> argparse.ArgumentParser:
                     "records (or loads from the cache) the ARAP and elasticity data sets and prints the paper's "
                     "Tables 1-2 analogues and writes Figs. 5-7. The default run takes about a minute on 2 cores "
                     "(every part at small sizes); --full is the paper-scale run (N up to 1e7, every kernel, both "
-                    "dtypes, 57k-vertex and 24k-tet solvers: about 40 minutes).")
-    bench.add_argument("--full", action="store_true", help="the paper-scale run (about 40 minutes on 2 cores)")
+                    "dtypes, 57k-vertex and 24k-tet solvers: about 80 minutes).")
+    bench.add_argument("--full", action="store_true", help="the paper-scale run (about 80 minutes on 2 cores)")
     bench.add_argument("--n", type=_positive_int, help="matrices per data set in the method tables")
     bench.add_argument("--scaling-n", type=_positive_int, nargs="+", help="N values of the scaling sweep")
     bench.add_argument("--data", type=_data_set, nargs="+", help="data sets of the method tables")
