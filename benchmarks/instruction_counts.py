@@ -27,6 +27,11 @@ import torch
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CASE_PREFIX = "case: "  # the worker names its cases on stderr, in the order it counts them
+KERNEL_PREFIX = "kernel: "  # and the kernel each column ran on
+# Below a few hundred matrices a call's own path differs with the size (e.g.
+# copy_'s, or one block against several), so per-call costs no longer cancel
+# (measured at 32 and 64: negative differences).
+MIN_SIZE = 256
 
 
 def _cases(n: int) -> dict:
@@ -57,7 +62,8 @@ def _cases(n: int) -> dict:
 
 def _worker(kernels: list[str], sizes: list[int]) -> None:
     """Runs every case on every size between SIGUSR1 and SIGUSR2 (the counter's
-    region markers), after a warm-up call; prints nothing of its own."""
+    region markers), after a warm-up call. It names the cases and the kernels
+    that ran (a kernel the CPU lacks is capped by cpu_kernel) on stderr."""
     from torchrot.testing import cpu_kernel
 
     torch.set_num_threads(1)  # the kernel runs on the traced thread
@@ -66,7 +72,8 @@ def _worker(kernels: list[str], sizes: list[int]) -> None:
         print(CASE_PREFIX + name, file=sys.stderr, flush=True)
     pid = os.getpid()
     for kernel in kernels:
-        with cpu_kernel(kernel):
+        with cpu_kernel(kernel) as actual:
+            print(KERNEL_PREFIX + actual, file=sys.stderr, flush=True)
             for name in cases[sizes[0]]:
                 for n in sizes:
                     fn = cases[n][name]
@@ -82,6 +89,8 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs=2, default=[512, 1536])
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if min(args.sizes) < MIN_SIZE or args.sizes[0] >= args.sizes[1]:
+        parser.error(f"--sizes N1 N2 needs {MIN_SIZE} <= N1 < N2")
     if args.worker:
         _worker(args.kernels, args.sizes)
         return
@@ -99,12 +108,14 @@ def main() -> None:
         run = subprocess.run(worker, check=True, capture_output=True, text=True)
     counts = [int(line) for line in run.stdout.split()]
     case_names = [line[len(CASE_PREFIX):] for line in run.stderr.splitlines() if line.startswith(CASE_PREFIX)]
+    ran = [line[len(KERNEL_PREFIX):] for line in run.stderr.splitlines() if line.startswith(KERNEL_PREFIX)]
     n1, n2 = args.sizes
     per_kernel = len(case_names) * 2
     if len(counts) != per_kernel * len(kernels):
         sys.exit(f"expected {per_kernel * len(kernels)} counts, got {len(counts)}")
     print(f"instructions per matrix, float32, 1 thread ((count at N = {n2} - count at N = {n1}) / {n2 - n1})")
-    print("| call | " + " | ".join(kernels) + " |\n|---|" + "---|" * len(kernels))
+    print("| call | " + " | ".join(f"{k} (ran: {r})" if r != k else k for k, r in zip(kernels, ran)) + " |\n|---|"
+          + "---|" * len(kernels))
     table = {k: counts[i * per_kernel:(i + 1) * per_kernel] for i, k in enumerate(kernels)}
     for j, name in enumerate(case_names):
         cells = [f"{(table[k][2 * j + 1] - table[k][2 * j]) / (n2 - n1):.1f}" for k in kernels]
