@@ -101,11 +101,17 @@ TORCHROT_INLINE LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<
   // Scale to max |entry| = 1: the maximiser is unchanged and no product in a
   // step can over- or underflow. 1 / subnormal may overflow, so those lanes
   // are first lifted by 2^digits (exact). M = 0 stays 0.
-  const V lift = L::select(L::lt(max_abs, V(std::numeric_limits<T>::min())),
-                           V(std::ldexp(T(1), std::numeric_limits<T>::digits)), V(1));
+  // Blocks without such lanes skip the lift: x * 1 is x, bit for bit.
   const Mask zero = L::eq(max_abs, V(0));
-  const V inv = L::select(zero, V(0), V(1) / (max_abs * lift));
-  for (int k = 0; k < 9; ++k) s.A.a[k] = (M.a[k] * lift) * inv;
+  const Mask below_normal = L::lt(max_abs, V(std::numeric_limits<T>::min()));  // zero included
+  if (L::any(below_normal)) {
+    const V lift = L::select(below_normal, V(std::ldexp(T(1), std::numeric_limits<T>::digits)), V(1));
+    const V inv = L::select(zero, V(0), V(1) / (max_abs * lift));
+    for (int k = 0; k < 9; ++k) s.A.a[k] = (M.a[k] * lift) * inv;
+  } else {
+    const V inv = V(1) / max_abs;
+    for (int k = 0; k < 9; ++k) s.A.a[k] = M.a[k] * inv;
+  }
 
   if (init != nullptr && init_known_clean) {
     s.R = *init;
@@ -184,9 +190,11 @@ template <typename L>
     Mask finished = L::mask_and(stepping, L::mask_and(undamped, step.template smaller_than<L>(Tol::converged)));
 
     if (converge) {
-      const Mask switch_now = L::mask_or(step.template smaller_than<L>(Tol::estimate_switch),
-                                         L::mask_not(L::lt(s.attempt_steps, V(Tol::gershgorin_steps))));
-      s.switched = L::mask_or(s.switched, L::mask_and(stepping, switch_now));
+      if (options.variant == Variant::kGershgorin) {  // the only variant that reads `switched`
+        const Mask switch_now = L::mask_or(step.template smaller_than<L>(Tol::estimate_switch),
+                                           L::mask_not(L::lt(s.attempt_steps, V(Tol::gershgorin_steps))));
+        s.switched = L::mask_or(s.switched, L::mask_and(stepping, switch_now));
+      }
       if (L::any(finished)) {
         // Unless the step is small only because H is singular
         // (CayleyStep::singular): that lane is stalled like one that cannot
