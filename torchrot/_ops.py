@@ -76,8 +76,9 @@ def fit_rotation(
             are accepted (|R^T R - I|_F < 0.05, det > 0) and brought to the
             compute dtype's precision by Newton-Schulz steps, so results fed
             back call after call, or across precisions, do not drift. Without
-            init, a cold start picks the best of 12 pre-rotations. No gradient
-            flows to init.
+            init, the fit starts from the best of the 24 rotations of the cube
+            (the signed permutation matrices of det +1). No gradient flows to
+            init.
         max_iter: ``None`` (default) iterates each matrix to convergence at its
             dtype's precision and guarantees the maximum (a Horn/Jacobi
             fallback takes over matrices that do not converge within 12 steps
