@@ -183,11 +183,12 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
         int64_t indices[L::width];
         for (int j = 0; j < count; ++j) indices[j] = pending[i + j].index;
         if (L::any(s.running)) save_running_lanes<L>(s, count, indices, next);
+        alignas(64) T entries[9][L::width];
+        for (int k = 0; k < 9; ++k) L::store(R.a[k], entries[k]);
         for (int j = 0; j < count; ++j) {
           const int64_t index = indices[j];
           if (L::lane_set(s.running, j)) continue;
-          const Mat3<T> r = kernel::extract_lane<L>(R, j);
-          for (int k = 0; k < 9; ++k) args.out[offset<kContiguous>(args.out_stride, index, k)] = r.a[k];
+          for (int k = 0; k < 9; ++k) args.out[offset<kContiguous>(args.out_stride, index, k)] = entries[k][j];
           if (diagnostics) store_diagnostics<L>(s, j, args, index);
         }
       }
