@@ -6,13 +6,16 @@ capsule, ~1e6 matrices, cached in ~/.cache/torchrot) with their previous
 rotations as warm starts, timed interleaved, median of ``--rounds`` rounds:
 ``copy_`` of M into a preallocated tensor, the one-step update on
 structure-of-arrays views (the paper's layout, ``torchrot.testing.soa_view``),
-on contiguous (N, 3, 3) tensors (``out=``, in place and into a new output) and the converged fit
-from the warm start (exact: its failures against float64 SVD are counted).
-Part 2: the converged cold fit on uniform [0, 1] matrices (N = 1e5) against
-``torch.linalg.svd`` special Procrustes. Part 3: ``torchrot.nn.RotationFit``
+on contiguous (N, 3, 3) tensors (``out=``, in place and into a new output), the
+converged fit from the warm start (exact: its failures against float64 SVD are
+counted), ``torch.add(M, init, out=)``, which moves a warm-start call's
+bytes, and the check of the warm starts that ``out=`` calls make before
+writing. Part 2: the cold fit on uniform [0, 1] matrices (N = 1e5; converged,
+and one, two and three steps) against ``torch.linalg.svd`` special Procrustes. Part 3: ``torchrot.nn.RotationFit``
 forward + backward against SVD autograd (``torchrot.bench.micro.rotation_layer``).
-Between parts 2 and 3, what bounds the targets: bytes moved, the computation
-alone with the data in cache, and the cost and number of Cayley steps.
+Between parts 2 and 3, what bounds the targets, from those timings (bytes
+moved, the cost and number of Cayley steps) and from the computation alone
+with the data in cache, timed there.
 
     python benchmarks/speed_targets.py [--n 1000000] [--rounds 9] [--layer-batches 64 100000]
 """
@@ -49,55 +52,56 @@ def _failures(R: torch.Tensor, M: torch.Tensor) -> int:
 CACHED_N = 16384
 
 
-def _bounds(M: torch.Tensor, init: torch.Tensor, U: torch.Tensor, rounds: int, min_time: float) -> None:
-    """Prints what bounds the copy_-relative and SVD-relative targets, measured
-    in this run: bytes (``torch.add(M, init, out=)`` moves what a warm-start
-    call moves), the computation alone (data in cache), and Cayley steps (the
-    cost of one, from max_iter = 3 against max_iter = 1, and how many a
-    converged call executes against how many its matrices need)."""
-    buf, out, out_u = torch.empty_like(M), torch.empty_like(M), torch.empty_like(U)
+def _bounds(ns: dict[str, float], cold_ns: dict[str, float], M: torch.Tensor, init: torch.Tensor, U: torch.Tensor,
+            rounds: int, min_time: float) -> None:
+    """Prints what bounds the copy_-relative and SVD-relative targets from the
+    timings of parts 1 and 2 (``ns``, ``cold_ns``: ns/matrix): bytes
+    (``torch.add(M, init, out=)`` moves what a warm-start call moves), Cayley
+    steps (the cost of one, from cold fits of max_iter = 3 against 2, and the
+    steps a converged call takes against those its matrices need), and, timed
+    here, the computation alone (data in cache)."""
     Mc, Ic = M[:CACHED_N].clone(), init[:CACHED_N].clone()
     buf_c, out_c = torch.empty_like(Mc), torch.empty_like(Mc)
     fit = torchrot.fit_rotation
-    big = {
-        "copy_ of M": lambda: buf.copy_(M),
-        "torch.add(M, init, out=)": lambda: torch.add(M, init, out=buf),
-        "warm, max_iter=1": lambda: fit(M, init, max_iter=1, out=out),
-        "warm, max_iter=3": lambda: fit(M, init, max_iter=3, out=out),
-        "warm, converged": lambda: fit(M, init, out=out),
-    }
     cached = {
         "copy_ of M": lambda: buf_c.copy_(Mc),
         "one-step": lambda: fit(Mc, Ic, max_iter=1, out=out_c),
         "converged warm": lambda: fit(Mc, Ic, out=out_c),
     }
-    cold = {
-        "cold, max_iter=1": lambda: fit(U, max_iter=1, out=out_u),
-        "cold, max_iter=3": lambda: fit(U, max_iter=3, out=out_u),
-        "cold, converged": lambda: fit(U, out=out_u),
-    }
-    ns = {k: v / M.shape[0] * 1e9 for k, v in _interleaved(big, rounds, min_time).items()}
     ns_c = {k: v / CACHED_N * 1e9 for k, v in _interleaved(cached, rounds, min_time).items()}
-    ns_u = {k: v / U.shape[0] * 1e9 for k, v in _interleaved(cold, max(3, rounds // 3), min_time).items()}
-    copy, elem = ns["copy_ of M"], M.element_size() * 9
+    copy, add, elem = ns[COPY], ns[ADD], M.element_size() * 9
     print(f"\nWhat bounds them (this run, ns/matrix):\n- bytes: a warm-start call reads M and init and writes R, "
           f"{3 * elem} B/matrix against copy_'s {2 * elem} B; torch.add(M, init, out=) moves the same bytes in "
-          f"{ns['torch.add(M, init, out=)']:.2f} ns = {ns['torch.add(M, init, out=)'] / copy:.2f}x copy_ ({copy:.2f}).")
+          f"{add:.2f} ns = {add / copy:.2f}x copy_ ({copy:.2f}), both from part 1. A call with out= first checks "
+          f"every warm start, so that one that raises leaves out as it was: {ns[VALIDATE]:.2f} of the one-step's "
+          f"{ns[ONE_STEP]:.2f} (it reads init once more; the fit then skips its own check).")
     print(f"- the computation alone (N = {CACHED_N:,}, data in cache): copy_ {ns_c['copy_ of M']:.2f}, one-step "
           f"{ns_c['one-step']:.2f} = {ns_c['one-step'] / copy:.2f}x the copy_ at N = {M.shape[0]:,}, converged warm "
           f"{ns_c['converged warm']:.2f} = {ns_c['converged warm'] / copy:.2f}x.")
-    for name, t1, t3, conv, iters in (
-        ("warm (recorded ARAP)", ns["warm, max_iter=1"], ns["warm, max_iter=3"], ns["warm, converged"],
-         torchrot.fit_rotation_info(M, init)[1]),
-        ("cold (uniform [0, 1])", ns_u["cold, max_iter=1"], ns_u["cold, max_iter=3"], ns_u["cold, converged"],
-         torchrot.fit_rotation_info(U)[1]),
-    ):
-        step = (t3 - t1) / 2
-        fixed = t1 - step
-        print(f"- Cayley steps, {name}: a step costs {step:.2f} (max_iter 3 against 1), the rest of a call {fixed:.2f}; "
-              f"converged {conv:.2f} = {fixed:.2f} + {(conv - fixed) / step:.2f} step-equivalents, while its matrices "
-              f"need {iters.float().mean().item():.2f} steps on average (SIMD blocks step until their slowest lane "
-              f"converges; the rest is the convergence and maximum checks).")
+    warm_steps = torchrot.fit_rotation_info(M, init)[1].float()
+    cold_steps = torchrot.fit_rotation_info(U)[1].float()
+    step = cold_ns[COLD_3] - cold_ns[COLD_2]
+    single = (warm_steps < 2).float().mean().item()
+    extra = ns[CONVERGED] - ns[ONE_STEP]
+    print(f"- Cayley steps: a step costs {step:.2f} (cold, max_iter 3 against 2: the same code path, one more step).")
+    print(f"  Warm (recorded ARAP): its matrices need {warm_steps.mean().item():.2f} steps on average, but only "
+          f"{single:.1%} need one, so a SIMD block all but always takes two (a block of 8 lanes with probability "
+          f"{1 - single ** 8:.4f}, of 16 {1 - single ** 16:.6f}, were its lanes independent); converged "
+          f"{ns[CONVERGED]:.2f} = the one-step {ns[ONE_STEP]:.2f} "
+          f"+ {extra / step:.2f} step-equivalents (the second step, and the convergence and maximum checks of each).")
+    print(f"  Cold (uniform [0, 1]): its matrices need {cold_steps.mean().item():.2f} steps on average "
+          f"({(cold_steps >= 4).float().mean().item():.1%} four or more); converged {cold_ns[COLD]:.2f} = "
+          f"{cold_ns[COLD] / step:.2f} step-equivalents, of which max_iter=1 takes {cold_ns[COLD_1] / step:.2f}.")
+
+
+# The timings parts 1 and 2 share with _bounds and the target table.
+COPY = "copy_ of M (memory floor)"
+ADD = "torch.add(M, init, out=) (a warm call's bytes)"
+VALIDATE = "warm-start check before writing (in out= calls)"
+ONE_STEP = "one-step, contiguous, out="
+CONVERGED = "converged from the warm start, contiguous"
+SVD, COLD = "svd", "torchrot"
+COLD_1, COLD_2, COLD_3 = (f"torchrot, max_iter={k}" for k in (1, 2, 3))
 
 
 def main() -> None:
@@ -115,16 +119,18 @@ def main() -> None:
     M_soa, init_soa = soa_view(M), soa_view(init)
     buf, out, out_soa, R = torch.empty_like(M), torch.empty_like(M), soa_view(torch.empty_like(M)), init.clone()
     methods = {
-        "copy_ of M (memory floor)": lambda: buf.copy_(M),
+        COPY: lambda: buf.copy_(M),
+        ADD: lambda: torch.add(M, init, out=buf),
+        VALIDATE: lambda: torch.ops.torchrot._count_bad_warm_starts(init),
         "one-step, SoA views, out=": lambda: torchrot.fit_rotation(M_soa, init_soa, max_iter=1, out=out_soa),
-        "one-step, contiguous, out=": lambda: torchrot.fit_rotation(M, init, max_iter=1, out=out),
+        ONE_STEP: lambda: torchrot.fit_rotation(M, init, max_iter=1, out=out),
         "one-step, contiguous, in place (out=init)": lambda: torchrot.fit_rotation(M, R, max_iter=1, out=R),
         "one-step, contiguous, new output": lambda: torchrot.fit_rotation(M, init, max_iter=1),
-        "converged from the warm start, contiguous": lambda: torchrot.fit_rotation(M, init, out=out),
+        CONVERGED: lambda: torchrot.fit_rotation(M, init, out=out),
         "converged from the warm start, SoA views": lambda: torchrot.fit_rotation(M_soa, init_soa, out=out_soa),
     }
     ns = {k: v / n * 1e9 for k, v in _interleaved(methods, args.rounds, args.min_time).items()}
-    copy = ns["copy_ of M (memory floor)"]
+    copy = ns[COPY]
     print(f"\nrecorded ARAP data (57k-vertex capsule), N = {n:,}, float32, 1 thread, median of {args.rounds} rounds")
     print(f"{'method':44s} {'ns/matrix':>10s} {'x copy_':>8s}")
     for name, v in ns.items():
@@ -135,27 +141,30 @@ def main() -> None:
           f"({one_step_failures / n:.2%}), converged {converged_failures}")
 
     U = make_matrices("uniform", 100_000, 0, torch.float32)
-    cold = _interleaved({"svd": lambda: torchrot.rotation_svd(U), "torchrot": lambda: torchrot.fit_rotation(U)},
+    cold = _interleaved({SVD: lambda: torchrot.rotation_svd(U), COLD: lambda: torchrot.fit_rotation(U),
+                         COLD_1: lambda: torchrot.fit_rotation(U, max_iter=1),
+                         COLD_2: lambda: torchrot.fit_rotation(U, max_iter=2),
+                         COLD_3: lambda: torchrot.fit_rotation(U, max_iter=3)},
                         max(3, args.rounds // 3), args.min_time)
-    print(f"\nuniform [0, 1], N = 100,000, converged cold: torchrot {cold['torchrot'] / 1e5 * 1e9:.1f} ns/matrix, "
-          f"torch.linalg.svd {cold['svd'] / 1e5 * 1e9:.1f}: {cold['svd'] / cold['torchrot']:.1f}x")
+    cold_ns = {k: v / U.shape[0] * 1e9 for k, v in cold.items()}
+    print(f"\nuniform [0, 1], N = 100,000, converged cold: torchrot {cold_ns[COLD]:.1f} ns/matrix, "
+          f"torch.linalg.svd {cold_ns[SVD]:.1f}: {cold[SVD] / cold[COLD]:.1f}x")
 
-    _bounds(M, init, U, args.rounds, args.min_time)
+    _bounds(ns, cold_ns, M, init, U, args.rounds, args.min_time)
 
     layer = micro.rotation_layer(tuple(args.layer_batches), min_run_time=args.min_time)
     print("\nnn.RotationFit forward + backward (us), float32, 1 thread:\n" + micro.format_layer_table(layer))
 
     rows = [
         ("one-step on SoA views <= 1.0x copy_", ns["one-step, SoA views, out="] / copy, 1.0),
-        ("one-step on contiguous tensors <= 1.3x copy_", ns["one-step, contiguous, out="] / copy, 1.3),
-        ("converged from the warm start, exact, <= 1.5x copy_", ns["converged from the warm start, contiguous"] / copy,
-         1.5),
+        ("one-step on contiguous tensors <= 1.3x copy_", ns[ONE_STEP] / copy, 1.3),
+        ("converged from the warm start, exact, <= 1.5x copy_", ns[CONVERGED] / copy, 1.5),
     ]
     print("\n| target | measured | holds |\n|---|---|---|")
     for name, value, bound in rows:
         print(f"| {name} | {value:.2f}x | {'yes' if value <= bound else '**no**'} |")
     print(f"| converged exact: 0 failures | {converged_failures} | {'yes' if converged_failures == 0 else '**no**'} |")
-    speedup = cold["svd"] / cold["torchrot"]
+    speedup = cold[SVD] / cold[COLD]
     print(f"| converged cold, uniform, N = 1e5, >= 100x SVD | {speedup:.1f}x | {'yes' if speedup >= 100 else '**no**'} |")
     for r in layer:
         if r["batch"] == 64:
