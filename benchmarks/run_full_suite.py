@@ -1,6 +1,6 @@
 """The complete CPU benchmark grid, written to benchmarks/results/.
 
-    python benchmarks/run_full_suite.py          # about 80 minutes on 2 cores
+    python benchmarks/run_full_suite.py          # torchrot.bench.cli.FULL_RUN_MINUTES on 2 cores
 
 Same as ``python -m torchrot bench --full --output benchmarks/results``: the
 scaling sweep (N = 1e3 ... 1e7, float32, 1 thread) and the method tables at

@@ -47,6 +47,11 @@ def _missing_app_modules() -> list[str]:
     return [m for m in ("scipy", "igl") if importlib.util.find_spec(m) is None]
 
 
+# Wall time of the paper-scale run (--full) on this project's 2-core VM:
+# benchmarks/run_full_suite.py took 4,972 s at 07da00b.
+FULL_RUN_MINUTES = 80
+
+
 def parser() -> argparse.ArgumentParser:
     top = argparse.ArgumentParser(prog="python -m torchrot")
     sub = top.add_subparsers(dest="command", required=True)
@@ -57,8 +62,9 @@ def parser() -> argparse.ArgumentParser:
                     "records (or loads from the cache) the ARAP and elasticity data sets and prints the paper's "
                     "Tables 1-2 analogues and writes Figs. 5-7. The default run takes about a minute on 2 cores "
                     "(every part at small sizes); --full is the paper-scale run (N up to 1e7, every kernel, both "
-                    "dtypes, 57k-vertex and 24k-tet solvers: about 80 minutes).")
-    bench.add_argument("--full", action="store_true", help="the paper-scale run (about 80 minutes on 2 cores)")
+                    f"dtypes, 57k-vertex and 24k-tet solvers: about {FULL_RUN_MINUTES} minutes).")
+    bench.add_argument("--full", action="store_true",
+                       help=f"the paper-scale run (about {FULL_RUN_MINUTES} minutes on 2 cores)")
     bench.add_argument("--n", type=_positive_int, help="matrices per data set in the method tables")
     bench.add_argument("--scaling-n", type=_positive_int, nargs="+", help="N values of the scaling sweep")
     bench.add_argument("--data", type=_data_set, nargs="+", help="data sets of the method tables")
