@@ -145,7 +145,7 @@ def main() -> None:
                          COLD_1: lambda: torchrot.fit_rotation(U, max_iter=1),
                          COLD_2: lambda: torchrot.fit_rotation(U, max_iter=2),
                          COLD_3: lambda: torchrot.fit_rotation(U, max_iter=3)},
-                        max(3, args.rounds // 3), args.min_time)
+                        args.rounds, args.min_time)
     cold_ns = {k: v / U.shape[0] * 1e9 for k, v in cold.items()}
     print(f"\nuniform [0, 1], N = 100,000, converged cold: torchrot {cold_ns[COLD]:.1f} ns/matrix, "
           f"torch.linalg.svd {cold_ns[SVD]:.1f}: {cold[SVD] / cold[COLD]:.1f}x")
