@@ -56,7 +56,8 @@ def _bounds(ns: dict[str, float], cold_ns: dict[str, float], M: torch.Tensor, in
             rounds: int, min_time: float) -> None:
     """Prints what bounds the copy_-relative and SVD-relative targets from the
     timings of parts 1 and 2 (``ns``, ``cold_ns``: ns/matrix): bytes
-    (``torch.add(M, init, out=)`` moves what a warm-start call moves), Cayley
+    (``torch.add(M, init, out=)`` moves what a warm-start call moves), the
+    check of the warm starts that out= calls make before writing, Cayley
     steps (the cost of one, from cold fits of max_iter = 3 against 2, and the
     steps a converged call takes against those its matrices need), and, timed
     here, the computation alone (data in cache)."""
