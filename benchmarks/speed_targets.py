@@ -41,9 +41,19 @@ def _interleaved(methods: dict, rounds: int, min_time: float) -> dict[str, float
     return {name: statistics.median(r) for name, r in runs.items()}
 
 
-def _failures(R: torch.Tensor, M: torch.Tensor) -> int:
-    M64 = M.double()
-    return micro.accuracy(R, M64, torchrot.rotation_svd(M64))["failures"]
+def _failures(R: torch.Tensor, M64: torch.Tensor, R_svd: torch.Tensor) -> int:
+    """Failures of R against the float64 SVD solution R_svd of M64 (micro.accuracy)."""
+    return micro.accuracy(R, M64, R_svd)["failures"]
+
+
+# The timings parts 1 and 2 share with _bounds and the target table.
+COPY = "copy_ of M (memory floor)"
+ADD = "torch.add(M, init, out=) (a warm call's bytes)"
+VALIDATE = "warm-start check before writing (in out= calls)"
+ONE_STEP = "one-step, contiguous, out="
+CONVERGED = "converged from the warm start, contiguous"
+SVD, COLD = "svd", "torchrot"
+COLD_1, COLD_2, COLD_3 = (f"torchrot, max_iter={k}" for k in (1, 2, 3))
 
 
 # Matrices whose inputs and output stay in cache (3 x 590 KB in float32, within
@@ -52,10 +62,11 @@ def _failures(R: torch.Tensor, M: torch.Tensor) -> int:
 CACHED_N = 16384
 
 
-def _bounds(ns: dict[str, float], cold_ns: dict[str, float], M: torch.Tensor, init: torch.Tensor, U: torch.Tensor,
-            rounds: int, min_time: float) -> None:
+def _bounds(ns: dict[str, float], cold_ns: dict[str, float], M: torch.Tensor, init: torch.Tensor,
+            warm_steps: torch.Tensor, U: torch.Tensor, rounds: int, min_time: float) -> None:
     """Prints what bounds the copy_-relative and SVD-relative targets from the
-    timings of parts 1 and 2 (``ns``, ``cold_ns``: ns/matrix): bytes
+    timings of parts 1 and 2 (``ns``, ``cold_ns``: ns/matrix; ``warm_steps``:
+    part 1's converged fit's steps per matrix): bytes
     (``torch.add(M, init, out=)`` moves what a warm-start call moves), the
     check of the warm starts that out= calls make before writing, Cayley
     steps (the cost of one, from cold fits of max_iter = 3 against 2, and the
@@ -79,30 +90,19 @@ def _bounds(ns: dict[str, float], cold_ns: dict[str, float], M: torch.Tensor, in
     print(f"- the computation alone (N = {CACHED_N:,}, data in cache): copy_ {ns_c['copy_ of M']:.2f}, one-step "
           f"{ns_c['one-step']:.2f} = {ns_c['one-step'] / copy:.2f}x the copy_ at N = {M.shape[0]:,}, converged warm "
           f"{ns_c['converged warm']:.2f} = {ns_c['converged warm'] / copy:.2f}x.")
-    warm_steps = torchrot.fit_rotation_info(M, init)[1].float()
+    warm_steps = warm_steps.float()
     cold_steps = torchrot.fit_rotation_info(U)[1].float()
     step = cold_ns[COLD_3] - cold_ns[COLD_2]
     single = (warm_steps < 2).float().mean().item()
     extra = ns[CONVERGED] - ns[ONE_STEP]
     print(f"- Cayley steps: a step costs {step:.2f} (cold, max_iter 3 against 2: the same code path, one more step).")
     print(f"  Warm (recorded ARAP): its matrices need {warm_steps.mean().item():.2f} steps on average, but only "
-          f"{single:.1%} need one, so a SIMD block all but always takes two (a block of 8 lanes with probability "
-          f"{1 - single ** 8:.4f}, of 16 {1 - single ** 16:.6f}, were its lanes independent); converged "
+          f"{single:.1%} need one, so a SIMD block all but always takes two; converged "
           f"{ns[CONVERGED]:.2f} = the one-step {ns[ONE_STEP]:.2f} "
           f"+ {extra / step:.2f} step-equivalents (the second step, and the convergence and maximum checks of each).")
     print(f"  Cold (uniform [0, 1]): its matrices need {cold_steps.mean().item():.2f} steps on average "
           f"({(cold_steps >= 4).float().mean().item():.1%} four or more); converged {cold_ns[COLD]:.2f} = "
           f"{cold_ns[COLD] / step:.2f} step-equivalents, of which max_iter=1 takes {cold_ns[COLD_1] / step:.2f}.")
-
-
-# The timings parts 1 and 2 share with _bounds and the target table.
-COPY = "copy_ of M (memory floor)"
-ADD = "torch.add(M, init, out=) (a warm call's bytes)"
-VALIDATE = "warm-start check before writing (in out= calls)"
-ONE_STEP = "one-step, contiguous, out="
-CONVERGED = "converged from the warm start, contiguous"
-SVD, COLD = "svd", "torchrot"
-COLD_1, COLD_2, COLD_3 = (f"torchrot, max_iter={k}" for k in (1, 2, 3))
 
 
 def main() -> None:
@@ -136,8 +136,11 @@ def main() -> None:
     print(f"{'method':44s} {'ns/matrix':>10s} {'x copy_':>8s}")
     for name, v in ns.items():
         print(f"{name:44s} {v:10.2f} {v / copy:8.2f}")
-    converged_failures = _failures(torchrot.fit_rotation(M, init), M)
-    one_step_failures = _failures(torchrot.fit_rotation(M, init, max_iter=1), M)
+    M64 = M.double()
+    R_svd = torchrot.rotation_svd(M64)
+    R_converged, warm_steps, _ = torchrot.fit_rotation_info(M, init)
+    converged_failures = _failures(R_converged, M64, R_svd)
+    one_step_failures = _failures(torchrot.fit_rotation(M, init, max_iter=1), M64, R_svd)
     print(f"failures (|R - R*|_F > {micro.FAILURE_THRESHOLD:g} or non-finite): one-step {one_step_failures:,} "
           f"({one_step_failures / n:.2%}), converged {converged_failures}")
 
@@ -151,7 +154,7 @@ def main() -> None:
     print(f"\nuniform [0, 1], N = 100,000, converged cold: torchrot {cold_ns[COLD]:.1f} ns/matrix, "
           f"torch.linalg.svd {cold_ns[SVD]:.1f}: {cold[SVD] / cold[COLD]:.1f}x")
 
-    _bounds(ns, cold_ns, M, init, U, args.rounds, args.min_time)
+    _bounds(ns, cold_ns, M, init, warm_steps, U, args.rounds, args.min_time)
 
     layer = micro.rotation_layer(tuple(args.layer_batches), min_run_time=args.min_time)
     print("\nnn.RotationFit forward + backward (us), float32, 1 thread:\n" + micro.format_layer_table(layer))
