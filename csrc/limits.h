@@ -44,6 +44,11 @@ constexpr double kInitCleanFloat = 1e-4;
 constexpr double kInitCleanDouble = 1e-7;
 constexpr int kInitCleanSteps = 4;
 
+// A tiny step is the last only if undamped: its damping c - tr S is at most
+// this times |tr S| (sqrt(eps) of the compute dtype, see kernel::Tolerances).
+constexpr double kUndampedFloat = 3.4526698e-4;
+constexpr double kUndampedDouble = 1.4901161193847656e-8;
+
 // Converged mode (max_iter=None), see kernel::Tolerances: Cayley steps per
 // start or saddle escape before the fallback decides, saddle escapes allowed,
 // steps the Gershgorin estimate (Eq. 28) is used for before the conservative

@@ -22,6 +22,9 @@ INIT_TOLERANCE: float = _CONSTANTS["INIT_TOLERANCE"]
 #: it is; above it, it first takes up to INIT_CLEAN_STEPS Newton-Schulz steps.
 INIT_CLEAN: dict = {"float32": _CONSTANTS["INIT_CLEAN_FLOAT"], "float64": _CONSTANTS["INIT_CLEAN_DOUBLE"]}
 INIT_CLEAN_STEPS: int = _CONSTANTS["INIT_CLEAN_STEPS"]
+#: A step is the last only if undamped: c - tr S <= UNDAMPED |tr S| (sqrt(eps),
+#: float32 / float64 compute).
+UNDAMPED: dict = {"float32": _CONSTANTS["UNDAMPED_FLOAT"], "float64": _CONSTANTS["UNDAMPED_DOUBLE"]}
 #: Converged mode: steps per start or escape, saddle escapes, Gershgorin
 #: steps, early switch of the estimate, maximum-check slack (units of eps).
 CONVERGED_CAP: int = _CONSTANTS["CONVERGED_CAP"]

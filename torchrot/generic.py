@@ -45,6 +45,7 @@ from torchrot._limits import (
     INIT_TOLERANCE,
     MAX_CHECK_SLACK_EPS,
     MAX_ESCAPES,
+    UNDAMPED,
 )
 
 STATUS_CAYLEY, STATUS_FALLBACK, STATUS_BAD_INIT, STATUS_NON_FINITE = 0, 1, 2, 3
@@ -411,7 +412,7 @@ def _step(st, variant, converge, cap, eps):
     running, fallback, switched = st["running"], st["fallback"], st["switched"]
     iterations, attempt, escapes = st["iterations"], st["attempt"], st["escapes"]
     tiny = torch.finfo(A[0].dtype).tiny
-    undamped_tol = 3.4526698e-4 if A[0].dtype == torch.float32 else 1.4901161193847656e-8
+    undamped_tol = UNDAMPED[str(A[0].dtype).removeprefix("torch.")]
     S = _tmul(R, A)
     t = S[0] + S[4] + S[8]
     m = (S[7] - S[5], S[2] - S[6], S[3] - S[1])

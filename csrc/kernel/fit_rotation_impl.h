@@ -37,7 +37,7 @@ struct Tolerances {
   // sqrt(eps) |z| <= eps. (The conservative estimate is within ~eps |tr S|
   // of tr S there, far from that bound; Gershgorin's slack is not.)
   static constexpr T converged = eps;
-  static constexpr T undamped = sizeof(T) == 4 ? T(3.4526698e-4) : T(1.4901161193847656e-8);  // sqrt(eps)
+  static constexpr T undamped = T(sizeof(T) == 4 ? limits::kUndampedFloat : limits::kUndampedDouble);  // sqrt(eps)
   // In converged mode the Gershgorin variant switches to the conservative
   // estimate after its first two steps (per start or escape) or after a step
   // below ~1 degree. Gershgorin's bound (Eq. 28) is meant for the large first
