@@ -49,6 +49,12 @@ constexpr int kInitCleanSteps = 4;
 constexpr double kUndampedFloat = 3.4526698e-4;
 constexpr double kUndampedDouble = 1.4901161193847656e-8;
 
+// Laguerre steps at most for the maximal objective that a cold start's first
+// Cayley step takes as its estimate (kernel/maximal_objective.h). Measured
+// per lane: uniform and Gaussian M need 2-6 (float32) and 3-7 (float64);
+// only near a double root, where convergence is linear, do more run.
+constexpr int kObjectiveLaguerreSteps = 16;
+
 // Converged mode (max_iter=None), see kernel::Tolerances: Cayley steps per
 // start or saddle escape before the fallback decides, saddle escapes allowed,
 // steps the Gershgorin estimate (Eq. 28) is used for before the conservative

@@ -46,6 +46,7 @@ PyObject* constants(PyObject*, PyObject*) {
                   set_item(dict, "INIT_CLEAN_STEPS", PyLong_FromLong(kInitCleanSteps)) &&
                   set_item(dict, "UNDAMPED_FLOAT", PyFloat_FromDouble(kUndampedFloat)) &&
                   set_item(dict, "UNDAMPED_DOUBLE", PyFloat_FromDouble(kUndampedDouble)) &&
+                  set_item(dict, "OBJECTIVE_LAGUERRE_STEPS", PyLong_FromLong(kObjectiveLaguerreSteps)) &&
                   set_item(dict, "CONVERGED_CAP", PyLong_FromLong(kConvergedCap)) &&
                   set_item(dict, "MAX_ESCAPES", PyLong_FromLong(kMaxEscapes)) &&
                   set_item(dict, "GERSHGORIN_STEPS", PyLong_FromLong(kGershgorinSteps)) &&

@@ -390,6 +390,21 @@ def test_iteration_counts_on_warm_default_variant(dtype, matrices):
     assert (status == 0).sum() + (status == 1).sum() == N
 
 
+@pytest.mark.parametrize("name", ["uniform", "gaussian", "det_negative"])
+def test_cold_first_step_lands_on_the_maximum(name, dtype, variant, matrices):
+    # The first step from the cube start takes c = K's largest eigenvalue
+    # (maximal_objective.h), so it solves Horn's eigenproblem: the second step
+    # only confirms (measured, 1e5 uniform or Gaussian matrices: 2.000 steps on
+    # average in both dtypes, against 3.2-3.9 with the estimates alone), and one
+    # step alone is already the fit.
+    M = matrices(name, N, 23, dtype)
+    _, iterations, status = torchrot.fit_rotation_info(M, variant=variant)
+    assert (status == 0).all()
+    assert (iterations == 2).float().mean().item() >= 0.99
+    errors = rotation_errors(torchrot.fit_rotation(M, max_iter=1, variant=variant), M)
+    assert errors["shortfall"].max() <= CRITERIA[dtype]["shortfall"]
+
+
 def test_fallback_rate_on_warm_every_variant(dtype, variant, matrices):
     M = matrices("warm", N, 15, dtype)
     _, iterations, status = torchrot.fit_rotation_info(M, variant=variant)

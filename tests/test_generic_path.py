@@ -15,6 +15,7 @@ import torch
 
 import torchrot
 from torchrot import generic
+from torchrot._limits import OBJECTIVE_LAGUERRE_STEPS, UNDAMPED
 from torchrot.reference import fit_rotation_backward_reference
 from torchrot.testing import (
     DISTRIBUTIONS,
@@ -35,10 +36,29 @@ def test_criteria_every_distribution(name, dtype, assert_meets_criteria):
     R, it, status = torchrot.fit_rotation_reference(M, return_info=True)
     assert_meets_criteria(R, M, dtype, name)
     _, it_k, status_k = torchrot.fit_rotation_info(M)
-    # rank-1 M has no isolated maximum: nearly all of it falls back, and float32
-    # rounding (fused in the kernel, not in torch's ops) decides a few more or
-    # fewer (measured: 1,465 and 1,444 of 1,500)
-    assert (status == 1).sum() <= (status_k == 1).sum() + max(3, N // 50)
+    # rank-1 M has no isolated maximum (K's largest eigenvalue is double): nearly
+    # all of it falls back, and float32 rounding (fused in the kernel, not in
+    # torch's ops) decides a few more or fewer (measured, seeds 11-14: 1,420-1,435
+    # and 1,372-1,389 of 1,500)
+    assert (status == 1).sum() <= (status_k == 1).sum() + max(3, N // 20)
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=str)
+@pytest.mark.parametrize("name", ["uniform", "gaussian", "det_negative", "rank2"])
+def test_maximal_objective_is_horns_largest_eigenvalue(name, dtype):
+    # max_R tr(R^T A) = sigma_1 + sigma_2 + sign(det A) sigma_3 (Laguerre's
+    # method from above, maximal_objective.h), up to the rounding of p near its
+    # root (measured: at most 72 eps relative, float32 uniform).
+    M = make_matrices(name, N, 29, dtype)
+    A = list((M / M.abs().amax((-2, -1), keepdim=True)).reshape(-1, 9).unbind(-1))
+    _, start_objective = generic._best_start_rotation(A)
+    lam = generic._maximal_objective(A, start_objective, UNDAMPED[str(dtype).removeprefix("torch.")],
+                                     OBJECTIVE_LAGUERRE_STEPS)
+    A64 = torch.stack(A, -1).double().reshape(-1, 3, 3)
+    sigma = torch.linalg.svdvals(A64)
+    expected = sigma[:, 0] + sigma[:, 1] + torch.sign(torch.linalg.det(A64)) * sigma[:, 2]
+    assert (start_objective <= lam).all()
+    torch.testing.assert_close(lam.double(), expected, rtol=256 * torch.finfo(dtype).eps, atol=0)
 
 
 @pytest.mark.parametrize("variant", ["newton", "conservative", "gershgorin"])

@@ -25,6 +25,8 @@ INIT_CLEAN_STEPS: int = _CONSTANTS["INIT_CLEAN_STEPS"]
 #: A step is the last only if undamped: c - tr S <= UNDAMPED |tr S| (sqrt(eps),
 #: float32 / float64 compute).
 UNDAMPED: dict = {"float32": _CONSTANTS["UNDAMPED_FLOAT"], "float64": _CONSTANTS["UNDAMPED_DOUBLE"]}
+#: Laguerre steps at most for the maximal objective of a cold start.
+OBJECTIVE_LAGUERRE_STEPS: int = _CONSTANTS["OBJECTIVE_LAGUERRE_STEPS"]
 #: Converged mode: steps per start or escape, saddle escapes, Gershgorin
 #: steps, early switch of the estimate, maximum-check slack (units of eps).
 CONVERGED_CAP: int = _CONSTANTS["CONVERGED_CAP"]

@@ -77,7 +77,10 @@ def fit_rotation(
             compute dtype's precision by Newton-Schulz steps, so results fed
             back call after call, or across precisions, do not drift. Without
             init, the fit starts from the best of the 24 rotations of the cube
-            (the signed permutation matrices of det +1). No gradient flows to
+            (the signed permutation matrices of det +1), and its first step
+            takes the maximal objective itself as c (Horn's largest
+            eigenvalue, by Laguerre's method on its characteristic
+            polynomial), which puts it on the maximum. No gradient flows to
             init.
         max_iter: ``None`` (default) iterates each matrix to convergence at its
             dtype's precision and guarantees the maximum (a Horn/Jacobi
@@ -86,8 +89,8 @@ def fit_rotation(
             with the chosen variant and no fallback: ``max_iter=1`` with
             ``init`` is the paper's one-step warm start for local-global
             solvers. The result is always an exact rotation.
-        variant: how each step estimates the maximal objective c (paper
-            Sec. 4.2): ``"newton"`` (c = tr M), ``"conservative"``
+        variant: how each step (but a cold start's first) estimates the
+            maximal objective c (paper Sec. 4.2): ``"newton"`` (c = tr M), ``"conservative"``
             (c = sqrt(tr(M)^2 + m^T m)) or ``"gershgorin"`` (Eqs. 27-28). With
             ``max_iter=None``, Gershgorin hands over to the conservative
             estimate after two steps (its slack makes convergence linear).

@@ -45,6 +45,7 @@ from torchrot._limits import (
     INIT_TOLERANCE,
     MAX_CHECK_SLACK_EPS,
     MAX_ESCAPES,
+    OBJECTIVE_LAGUERRE_STEPS,
     UNDAMPED,
 )
 
@@ -255,7 +256,8 @@ def _best_start_rotation(A):
     """The best of the 24 rotations of the cube (signed permutation matrices
     of det +1) for tr(P^T A), the first of equals (cold_start.h, step by
     step: each permutation with the signs of its entries, the smallest one
-    flipped where det would be -1; the winner's entries and columns kept)."""
+    flipped where det would be -1; the winner's entries and columns kept),
+    and its objective."""
     best = odd_perm = None
     entry, column = [None] * 3, [None] * 3
     for p, col in enumerate(_START_PERMS):
@@ -285,7 +287,39 @@ def _best_start_rotation(A):
         sign = torch.where(entry[i] < 0, -1.0, 1.0).to(A[0].dtype)
         s = torch.where(flip & smallest[i], -sign, sign)
         R += [torch.where(column[i] == j, s, 0.0).to(A[0].dtype) for j in range(3)]
-    return R
+    return R, best
+
+
+def _maximal_objective(A, lower, tol, max_steps):
+    """max_R tr(R^T A), K's largest eigenvalue, by Laguerre's method on K's
+    characteristic polynomial from above (maximal_objective.h, step by step)."""
+    t = A[0] + A[4] + A[8]
+    m = (A[7] - A[5], A[2] - A[6], A[3] - A[1])
+    t00, t11, t22 = 2 * A[0] - t, 2 * A[4] - t, 2 * A[8] - t
+    t01, t02, t12 = A[1] + A[3], A[2] + A[6], A[5] + A[7]
+    c00, c01, c02 = t11 * t22 - t12 * t12, t02 * t12 - t01 * t22, t01 * t12 - t02 * t11
+    c11, c12, c22 = t00 * t22 - t02 * t02, t01 * t02 - t00 * t12, t00 * t11 - t01 * t01
+    det_t = t00 * c00 + t01 * c01 + t02 * c02
+    adj_m = (c00 * m[0] + c01 * m[1] + c02 * m[2], c01 * m[0] + c11 * m[1] + c12 * m[2],
+             c02 * m[0] + c12 * m[1] + c22 * m[2])
+    p0 = t * det_t - (m[0] * adj_m[0] + m[1] * adj_m[1] + m[2] * adj_m[2])  # det K
+    norm2 = sum(a * a for a in A)
+    p2, p1 = -2 * norm2, -8 * _det(A)
+    x = torch.sqrt(3 * norm2)
+    active = x > 0
+    for _ in range(max_steps):
+        if not _compiling() and not _any(active):
+            break
+        x2 = x * x
+        p = ((x2 + p2) * x + p1) * x + p0
+        dp = (4 * x2 + 2 * p2) * x + p1
+        ddp = 12 * x2 + 2 * p2
+        root = torch.sqrt(torch.clamp(9 * dp * dp - 12 * (p * ddp), min=0))
+        nxt = x - 4 * p / (dp + root)
+        move = active & (nxt < x) & ~(nxt < lower)
+        active = move & (x - nxt > tol * nxt)
+        x = torch.where(move, nxt, x)
+    return x
 
 
 def _horn_rotation(A):
@@ -402,8 +436,9 @@ def _repeat(step, st, steps):
 _INT = torch.int32
 
 
-def _step(st, variant, converge, cap, eps):
-    """One masked Cayley step of the kernel's advance() on the lane state.
+def _step(st, variant, converge, cap, eps, objective=None):
+    """One masked Cayley step of the kernel's advance() on the lane state
+    (with c = ``objective`` if given: the first step from the cold start).
 
     A lane that stops at a saddle point (converged mode) with escapes left is
     marked ``pending`` and stops running; _apply_pending_escapes applies the
@@ -420,6 +455,8 @@ def _step(st, variant, converge, cap, eps):
     c = _objective_estimate(S, t, mm, variant)
     if converge and variant == "gershgorin":
         c = torch.where(switched, _objective_estimate(S, t, mm, "conservative"), c)
+    if objective is not None:
+        c = objective
     w, d, ww, dd, hh = _cayley_step(S, t, m, c)
     norm2 = dd + ww
     valid = (dd > 0) & torch.isfinite(norm2) & (norm2 > tiny)
@@ -508,8 +545,9 @@ def _masked_lanes(st, mask):
     return dict(st, running=st["running"] & mask, fallback=st["fallback"] & mask, pending=st["pending"] & mask)
 
 
-def fit_soa(A, R, running, variant, max_iter, eps):
+def fit_soa(A, R, running, variant, max_iter, eps, objective=None):
     """Runs advance + finish on SoA state; returns (R list, iterations, fallback).
+    ``objective``: the first step's estimate c (cold starts: the maximal objective).
 
     Schedule: every lane takes up to full_steps(dtype) steps on the whole batch
     (saddle escapes deferred); the lanes still running, falling back or
@@ -524,12 +562,16 @@ def fit_soa(A, R, running, variant, max_iter, eps):
     budget = CONVERGED_CAP * (MAX_ESCAPES + 1) if converge else max_iter
     zeros_b = torch.zeros_like(running)
     zeros_i = torch.zeros(running.shape, dtype=_INT, device=running.device)
-    st = {"A": A, "R": R, "running": running, "fallback": zeros_b, "switched": zeros_b,
+    # After an exact first step (cold starts) the Gershgorin variant goes on with the conservative estimate.
+    st = {"A": A, "R": R, "running": running, "fallback": zeros_b,
+          "switched": zeros_b if objective is None else ~zeros_b,
           "iterations": zeros_i, "attempt": zeros_i, "escapes": zeros_i, "pending": zeros_b}
     full = budget if (not converge and max_iter <= FULL_STEPS_MAX_ITER) else min(full_steps(A[0].dtype), budget)
     # A lane pending an escape after step k <= full needs at most
     # MAX_ESCAPES * CONVERGED_CAP more steps (<= budget - full).
-    st = _repeat(lambda s: _step(s, variant, converge, cap, eps), st, full)
+    if objective is not None:  # every lane's first step (full >= 1)
+        st = _step(st, variant, converge, cap, eps, objective)
+    st = _repeat(lambda s: _step(s, variant, converge, cap, eps), st, full - (objective is not None))
     rest = budget - full
     capacity = straggler_capacity(n) if n > 0 else 0
     R = _reorthonormalize(st["R"])
@@ -642,10 +684,12 @@ def _fit_core(M, init, max_iter, variant, warm=None):
             G = _gram(R)
             rough = rough & ~(_deviation2(G) < clean2)
     else:
-        R = _best_start_rotation(A)
+        R, start_objective = _best_start_rotation(A)
+        objective = _maximal_objective(A, start_objective, UNDAMPED[str(compute).removeprefix("torch.")],
+                                       OBJECTIVE_LAGUERRE_STEPS)
     A = _where(finite, A, [torch.zeros_like(a) for a in A])  # NaN stays in its lane
     running = finite & ~zero & ~bad_init
-    R, iterations, fallback = fit_soa(A, R, running, variant, max_iter, eps)
+    R, iterations, fallback = fit_soa(A, R, running, variant, max_iter, eps, None if init is not None else objective)
     nan_lane = ~finite | bad_init
     R = [torch.where(nan_lane, float("nan"), r) for r in R]
     out = torch.stack(R, -1).reshape(shape).to(M.dtype)

@@ -29,10 +29,10 @@ constexpr int kStartPerm[6][3] = {{0, 1, 2}, {1, 2, 0}, {2, 0, 1}, {0, 2, 1}, {2
 constexpr int kStartEvenPerms = 3;
 
 // The best of the 24 candidates, per lane (the first of equals, in the order
-// of kStartPerm). The loop over the permutations keeps the winner's entries
+// of kStartPerm), and its objective (up to rounding). The loop over the permutations keeps the winner's entries
 // and columns, so the matrix is assembled once at the end.
 template <typename L>
-inline Mat3<typename L::V> best_start_rotation(const Mat3<typename L::V>& A) {
+inline Mat3<typename L::V> best_start_rotation(const Mat3<typename L::V>& A, typename L::V& objective) {
   using V = typename L::V;
   using Mask = typename L::Mask;
   V best(0), odd_perm(0), entry[3], column[3];
@@ -76,6 +76,7 @@ inline Mat3<typename L::V> best_start_rotation(const Mat3<typename L::V>& A) {
     const V s = L::select(L::mask_and(flip, smallest[i]), V(0) - sign, sign);
     for (int j = 0; j < 3; ++j) R(i, j) = L::select(L::eq(column[i], V(j)), s, V(0));
   }
+  objective = best;
   return R;
 }
 
