@@ -54,7 +54,7 @@ def _cases(n: int) -> dict:
         "one-step, SoA views, out=": lambda: fit(M_soa, init_soa, max_iter=1, out=out_soa),
         "converged from the warm start": lambda: fit(M, init, out=out),
         "cold uniform, max_iter=1": lambda: fit(U, max_iter=1, out=out),
-        "cold uniform, max_iter=3": lambda: fit(U, max_iter=3, out=out),
+        "cold uniform, max_iter=2": lambda: fit(U, max_iter=2, out=out),
         "cold uniform, converged": lambda: fit(U, out=out),
         "backward (fit_rotation_backward)": lambda: torch.ops.torchrot.fit_rotation_backward(G, R_u, U, 1e-6),
     }
