@@ -295,14 +295,8 @@ def _maximal_objective(A, lower, tol, max_steps):
     characteristic polynomial from above (maximal_objective.h, step by step)."""
     t = A[0] + A[4] + A[8]
     m = (A[7] - A[5], A[2] - A[6], A[3] - A[1])
-    t00, t11, t22 = 2 * A[0] - t, 2 * A[4] - t, 2 * A[8] - t
-    t01, t02, t12 = A[1] + A[3], A[2] + A[6], A[5] + A[7]
-    c00, c01, c02 = t11 * t22 - t12 * t12, t02 * t12 - t01 * t22, t01 * t12 - t02 * t11
-    c11, c12, c22 = t00 * t22 - t02 * t02, t01 * t02 - t00 * t12, t00 * t11 - t01 * t01
-    det_t = t00 * c00 + t01 * c01 + t02 * c02
-    adj_m = (c00 * m[0] + c01 * m[1] + c02 * m[2], c01 * m[0] + c11 * m[1] + c12 * m[2],
-             c02 * m[0] + c12 * m[1] + c22 * m[2])
-    p0 = t * det_t - (m[0] * adj_m[0] + m[1] * adj_m[1] + m[2] * adj_m[2])  # det K
+    w, d, _, _, _ = _cayley_step(A, t, m, 0)  # T = A + A^T - t I is Algorithm 2's H for c = 0
+    p0 = t * d - (m[0] * w[0] + m[1] * w[1] + m[2] * w[2])  # det K
     norm2 = sum(a * a for a in A)
     p2, p1 = -2 * norm2, -8 * _det(A)
     x = torch.sqrt(3 * norm2)

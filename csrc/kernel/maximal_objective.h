@@ -38,23 +38,13 @@ TORCHROT_INLINE typename L::V maximal_objective(const Mat3<typename L::V>& A, ty
                                                 typename L::Scalar tol, int max_steps) {
   using V = typename L::V;
   using Mask = typename L::Mask;
-  // K's blocks: t, m (Eq. 12) and T = A + A^T - t I (Eq. 36).
+  // K's blocks: t, m (Eq. 12) and T = A + A^T - t I (Eq. 36), which is
+  // Algorithm 2's H for c = 0: its step gives det T and adj(T) m.
   const V t = trace(A);
   V m[3];
   skew_vector(A, m);
-  const V t00 = mul_add(V(2), A(0, 0), -t), t11 = mul_add(V(2), A(1, 1), -t), t22 = mul_add(V(2), A(2, 2), -t);
-  const V t01 = A(0, 1) + A(1, 0), t02 = A(0, 2) + A(2, 0), t12 = A(1, 2) + A(2, 1);
-  const V c00 = diff_of_products(t11, t22, t12, t12);
-  const V c01 = diff_of_products(t02, t12, t01, t22);
-  const V c02 = diff_of_products(t01, t12, t02, t11);
-  const V c11 = diff_of_products(t00, t22, t02, t02);
-  const V c12 = diff_of_products(t01, t02, t00, t12);
-  const V c22 = diff_of_products(t00, t11, t01, t01);
-  const V det_t = dot3(t00, c00, t01, c01, t02, c02);
-  const V adj_m0 = dot3(c00, m[0], c01, m[1], c02, m[2]);
-  const V adj_m1 = dot3(c01, m[0], c11, m[1], c12, m[2]);
-  const V adj_m2 = dot3(c02, m[0], c12, m[1], c22, m[2]);
-  const V p0 = mul_add(t, det_t, -dot3(m[0], adj_m0, m[1], adj_m1, m[2], adj_m2));  // det K
+  const CayleyStep<V> system = cayley_step(A, V(0));
+  const V p0 = mul_add(t, system.d, -dot3(m[0], system.w[0], m[1], system.w[1], m[2], system.w[2]));  // det K
   V norm2(0);
   for (int k = 0; k < 9; ++k) norm2 = mul_add(A.a[k], A.a[k], norm2);
   const V p2 = V(-2) * norm2;
