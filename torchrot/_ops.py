@@ -90,10 +90,11 @@ def fit_rotation(
             ``init`` is the paper's one-step warm start for local-global
             solvers. The result is always an exact rotation.
         variant: how each step (but a cold start's first) estimates the
-            maximal objective c (paper Sec. 4.2): ``"newton"`` (c = tr M), ``"conservative"``
-            (c = sqrt(tr(M)^2 + m^T m)) or ``"gershgorin"`` (Eqs. 27-28). With
-            ``max_iter=None``, Gershgorin hands over to the conservative
-            estimate after two steps (its slack makes convergence linear).
+            maximal objective c (paper Sec. 4.2): ``"newton"`` (c = tr M),
+            ``"conservative"`` (c = sqrt(tr(M)^2 + m^T m)) or ``"gershgorin"``
+            (Eqs. 27-28). With ``max_iter=None``, Gershgorin hands over to
+            the conservative estimate after two steps (its slack makes
+            convergence linear).
         gradient_eps: damping of the derivative (autograd, forward mode,
             torch.func): the optimality system (tr(S) I - S) u = g is solved
             as (A^2 + lambda^2 I)^-1 A g with lambda = gradient_eps |M|_F. The

@@ -98,6 +98,11 @@ def _mul(A, B):
     return [_dot3(A[3 * r], B[c], A[3 * r + 1], B[3 + c], A[3 * r + 2], B[6 + c]) for r in range(3) for c in range(3)]
 
 
+def _dtype_name(dtype: torch.dtype) -> str:
+    """"float32" for torch.float32: the key of torchrot._limits' per-dtype tables."""
+    return str(dtype).removeprefix("torch.")
+
+
 def _where(mask, X, Y):
     return [torch.where(mask, x, y) for x, y in zip(X, Y)]
 
@@ -290,9 +295,12 @@ def _best_start_rotation(A):
     return R, best
 
 
-def _maximal_objective(A, lower, tol, max_steps):
+def _maximal_objective(A, lower):
     """max_R tr(R^T A), K's largest eigenvalue, by Laguerre's method on K's
-    characteristic polynomial from above (maximal_objective.h, step by step)."""
+    characteristic polynomial from above (maximal_objective.h, step by step,
+    with kernel::Tolerances' sqrt(eps) and step cap); ``lower``: an attained
+    objective (the cube start's)."""
+    tol = UNDAMPED[_dtype_name(A[0].dtype)]
     t = A[0] + A[4] + A[8]
     m = (A[7] - A[5], A[2] - A[6], A[3] - A[1])
     w, d, _, _, _ = _cayley_step(A, t, m, 0)  # T = A + A^T - t I is Algorithm 2's H for c = 0
@@ -301,7 +309,7 @@ def _maximal_objective(A, lower, tol, max_steps):
     p2, p1 = -2 * norm2, -8 * _det(A)
     x = torch.sqrt(3 * norm2)
     active = x > 0
-    for _ in range(max_steps):
+    for _ in range(OBJECTIVE_LAGUERRE_STEPS):
         if not _compiling() and not _any(active):
             break
         x2 = x * x
@@ -441,16 +449,17 @@ def _step(st, variant, converge, cap, eps, objective=None):
     running, fallback, switched = st["running"], st["fallback"], st["switched"]
     iterations, attempt, escapes = st["iterations"], st["attempt"], st["escapes"]
     tiny = torch.finfo(A[0].dtype).tiny
-    undamped_tol = UNDAMPED[str(A[0].dtype).removeprefix("torch.")]
+    undamped_tol = UNDAMPED[_dtype_name(A[0].dtype)]
     S = _tmul(R, A)
     t = S[0] + S[4] + S[8]
     m = (S[7] - S[5], S[2] - S[6], S[3] - S[1])
     mm = m[0] * m[0] + m[1] * m[1] + m[2] * m[2]
-    c = _objective_estimate(S, t, mm, variant)
-    if converge and variant == "gershgorin":
-        c = torch.where(switched, _objective_estimate(S, t, mm, "conservative"), c)
     if objective is not None:
         c = objective
+    else:
+        c = _objective_estimate(S, t, mm, variant)
+        if converge and variant == "gershgorin":
+            c = torch.where(switched, _objective_estimate(S, t, mm, "conservative"), c)
     w, d, ww, dd, hh = _cayley_step(S, t, m, c)
     norm2 = dd + ww
     valid = (dd > 0) & torch.isfinite(norm2) & (norm2 > tiny)
@@ -660,6 +669,7 @@ def _fit_core(M, init, max_iter, variant, warm=None):
     A, max_abs, zero, _, _ = _normalized(_components(M.to(compute), n))
     finite = torch.isfinite(max_abs)
     bad_init = torch.zeros_like(finite)
+    objective = None  # the first step's estimate c: cold starts only
     if init is not None:
         I, G, init_finite, init_bad, dev2 = warm if warm is not None else _warm_start_components(init, compute)
         ex = lambda t: t.expand(batch).reshape(n)
@@ -669,7 +679,7 @@ def _fit_core(M, init, max_iter, variant, warm=None):
         bad_init = init_bad
         # clean_warm_start: masked Newton-Schulz steps for lanes above the
         # dtype's clean threshold (eager: only while some lane needs one).
-        clean2 = INIT_CLEAN[str(compute).removeprefix("torch.")] ** 2
+        clean2 = INIT_CLEAN[_dtype_name(compute)] ** 2
         rough = init_finite & ~init_bad & ~(dev2 < clean2)
         for _ in range(INIT_CLEAN_STEPS):
             if not _compiling() and not _any(rough):
@@ -679,11 +689,10 @@ def _fit_core(M, init, max_iter, variant, warm=None):
             rough = rough & ~(_deviation2(G) < clean2)
     else:
         R, start_objective = _best_start_rotation(A)
-        objective = _maximal_objective(A, start_objective, UNDAMPED[str(compute).removeprefix("torch.")],
-                                       OBJECTIVE_LAGUERRE_STEPS)
+        objective = _maximal_objective(A, start_objective)
     A = _where(finite, A, [torch.zeros_like(a) for a in A])  # NaN stays in its lane
     running = finite & ~zero & ~bad_init
-    R, iterations, fallback = fit_soa(A, R, running, variant, max_iter, eps, None if init is not None else objective)
+    R, iterations, fallback = fit_soa(A, R, running, variant, max_iter, eps, objective)
     nan_lane = ~finite | bad_init
     R = [torch.where(nan_lane, float("nan"), r) for r in R]
     out = torch.stack(R, -1).reshape(shape).to(M.dtype)

@@ -29,8 +29,9 @@ constexpr int kStartPerm[6][3] = {{0, 1, 2}, {1, 2, 0}, {2, 0, 1}, {0, 2, 1}, {2
 constexpr int kStartEvenPerms = 3;
 
 // The best of the 24 candidates, per lane (the first of equals, in the order
-// of kStartPerm), and its objective (up to rounding). The loop over the permutations keeps the winner's entries
-// and columns, so the matrix is assembled once at the end.
+// of kStartPerm), and its objective (up to rounding). The loop over the
+// permutations keeps the winner's entries and columns, so the matrix is
+// assembled once at the end.
 template <typename L>
 inline Mat3<typename L::V> best_start_rotation(const Mat3<typename L::V>& A, typename L::V& objective) {
   using V = typename L::V;

@@ -38,13 +38,13 @@ struct Tolerances {
   // sqrt(eps) |z| <= eps. (The conservative estimate is within ~eps |tr S|
   // of tr S there, far from that bound; Gershgorin's slack is not.)
   static constexpr T converged = eps;
+  static constexpr T undamped = T(sizeof(T) == 4 ? limits::kUndampedFloat : limits::kUndampedDouble);  // sqrt(eps)
   // Laguerre's method for the maximal objective (maximal_objective.h) stops
   // a lane once its correction is below sqrt(eps) x (the next would be below
   // eps x), or after this many steps (slow, linear convergence only near a
   // double root: three nearly equal singular values with det < 0, or rank 1).
-  static constexpr T objective_tolerance = T(sizeof(T) == 4 ? limits::kUndampedFloat : limits::kUndampedDouble);
+  static constexpr T objective_tolerance = undamped;
   static constexpr int objective_steps = limits::kObjectiveLaguerreSteps;
-  static constexpr T undamped = T(sizeof(T) == 4 ? limits::kUndampedFloat : limits::kUndampedDouble);  // sqrt(eps)
   // In converged mode the Gershgorin variant switches to the conservative
   // estimate after its first two steps (per start or escape) or after a step
   // below ~1 degree. Gershgorin's bound (Eq. 28) is meant for the large first
@@ -198,12 +198,14 @@ template <typename L, bool kFirstEstimate = false>
   for (int64_t b = 0; b < budget && L::any(s.running); ++b) {
     const Mat3<V> S = transpose_times(s.R, s.A);
     const V t = trace(S);
-    V c = objective_estimate<L>(S, options.variant);
-    if (converge && options.variant == Variant::kGershgorin) {
-      c = L::select(s.switched, objective_estimate<L>(S, Variant::kConservative), c);
-    }
-    if constexpr (kFirstEstimate) {
-      if (b == 0) c = *first_estimate;
+    V c;
+    if (kFirstEstimate && b == 0) {
+      c = *first_estimate;
+    } else {
+      c = objective_estimate<L>(S, options.variant);
+      if (converge && options.variant == Variant::kGershgorin) {
+        c = L::select(s.switched, objective_estimate<L>(S, Variant::kConservative), c);
+      }
     }
     const CayleyStep<V> step = cayley_step(S, c);
     const Mask valid = can_take<L>(step);
