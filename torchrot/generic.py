@@ -12,8 +12,8 @@ same iteration counts and status codes (tests/test_generic_path.py), but on
 the rare lane where rounding decides (a degenerate maximum or a saddle): the
 kernel rounds a * b + c once (csrc/kernel/mul_add.h), torch's ops twice.
 
-Schedule (converged mode): the whole batch takes up to ``full_steps(dtype)`` masked
-Cayley steps (most matrices converge within them), saddle escapes deferred;
+Schedule (converged mode): the whole batch takes up to ``full_steps(dtype, cold)``
+masked Cayley steps (most matrices converge within them), saddle escapes deferred;
 the matrices still running, pending an escape or needing the fallback are
 then compacted and take the rest of the kernel's step budget (escapes
 included) and the Horn fallback (float64 eigh) there;
@@ -52,25 +52,34 @@ from torchrot._limits import (
 STATUS_CAYLEY, STATUS_FALLBACK, STATUS_BAD_INIT, STATUS_NON_FINITE = 0, 1, 2, 3
 
 #: Masked Cayley steps every matrix of the batch takes before the stragglers
-#: are compacted (converged mode), by compute dtype (see full_steps); with
-#: max_iter=k <= FULL_STEPS_MAX_ITER all k steps run on the whole batch.
-#: The Newton steps converge quadratically, so float64 needs one more: from
-#: the cold start on uniform [0, 1] matrices (N = 1e5), 2.4% of float32 lanes
-#: still run after 4 steps and 2.3% of float64 lanes after 5. Each whole-batch
-#: step costs the whole batch; a straggler step only the buffer.
+#: are compacted (converged mode), by compute dtype, from a warm start (see
+#: full_steps); with max_iter=k <= FULL_STEPS_MAX_ITER all k steps run on the
+#: whole batch. The Newton steps converge quadratically, so float64 needs one
+#: more. From testing.make_warm_start (N = 1e5), float32: 7.1% of "warm"
+#: lanes take 3 steps, none more; 1.6% of rot60's take 4; float64 rot60:
+#: 0.004% take 5. Each whole-batch step costs the whole batch; a straggler
+#: step only the buffer.
 FULL_STEPS = {torch.float32: 4, torch.float64: 5}
+#: The same from the cold start, both dtypes: its first step is exact (c is the
+#: maximal objective) and the second confirms, so uniform and Gaussian lanes
+#: take 2 steps (N = 1e5: 34 float32 uniform lanes and 15 Gaussian take 3 or
+#: 4, no float64 lane more than 2); the few others finish in the buffer.
+#: Measured against 4 whole-batch steps (uniform, N = 1e5, CPU, min of 9,
+#: two alternations): float32 converged 771-929 -> 645 ns per matrix eagerly,
+#: 201-253 -> 193-213 compiled; float64 (no third steps) unchanged.
+COLD_FULL_STEPS = 2
 FULL_STEPS_MAX_ITER = 8
 #: Compiled, the straggler buffer holds 1/STRAGGLER_DIVISOR of the batch (at
 #: least STRAGGLER_MIN lanes, at most the batch); more stragglers than that
-#: take the rest of their steps on the whole batch. Uniform [0, 1] matrices,
-#: float32, N = 1e5: 2.4% need more than full_steps steps from the cold start.
+#: take the rest of their steps on the whole batch.
 STRAGGLER_DIVISOR = 8
 STRAGGLER_MIN = 1024
 
 
-def full_steps(dtype: torch.dtype) -> int:
-    """Whole-batch steps before compaction for compute dtype ``dtype``."""
-    return FULL_STEPS[dtype]
+def full_steps(dtype: torch.dtype, cold: bool) -> int:
+    """Whole-batch steps before compaction for compute dtype ``dtype``, from
+    the cold start (``cold``) or a warm one."""
+    return COLD_FULL_STEPS if cold else FULL_STEPS[dtype]
 
 
 def straggler_capacity(n: int) -> int:
@@ -388,9 +397,11 @@ _LANE_KEYS = ("running", "fallback", "switched", "iterations", "attempt", "escap
 UNROLL_MAX_STEPS = 2
 
 
-def _repeat(step, st, steps):
+def _repeat(step, st, steps, unroll=True):
     """Up to ``steps`` applications of ``step`` to the lane state ``st``
-    (a dict: ``A``, ``R`` and _LANE_KEYS), stopping once no lane runs."""
+    (a dict: ``A``, ``R`` and _LANE_KEYS), stopping once no lane runs.
+    Compiled, ``unroll`` lets a loop of at most UNROLL_MAX_STEPS steps be
+    unrolled; otherwise it is a while_loop."""
     if steps <= 0:
         return st
     if not _compiling():
@@ -399,7 +410,7 @@ def _repeat(step, st, steps):
                 break
             st = step(st)
         return st
-    if steps <= UNROLL_MAX_STEPS:  # a short fixed loop fuses into one kernel (finished lanes' steps are no-ops)
+    if unroll and steps <= UNROLL_MAX_STEPS:  # a short fixed loop fuses into one kernel (finished lanes' steps are no-ops)
         for _ in range(steps):
             st = step(st)
         return st
@@ -552,7 +563,7 @@ def fit_soa(A, R, running, variant, max_iter, eps, objective=None):
     """Runs advance + finish on SoA state; returns (R list, iterations, fallback).
     ``objective``: the first step's estimate c (cold starts: the maximal objective).
 
-    Schedule: every lane takes up to full_steps(dtype) steps on the whole batch
+    Schedule: every lane takes up to full_steps(dtype, cold) steps on the whole batch
     (saddle escapes deferred); the lanes still running, falling back or
     pending an escape are then compacted into a buffer of
     straggler_capacity(n) lanes that takes the rest of the step budget and
@@ -566,15 +577,21 @@ def fit_soa(A, R, running, variant, max_iter, eps, objective=None):
     zeros_b = torch.zeros_like(running)
     zeros_i = torch.zeros(running.shape, dtype=_INT, device=running.device)
     # After an exact first step (cold starts) the Gershgorin variant goes on with the conservative estimate.
+    cold = objective is not None
     st = {"A": A, "R": R, "running": running, "fallback": zeros_b,
-          "switched": zeros_b if objective is None else ~zeros_b,
+          "switched": ~zeros_b if cold else zeros_b,
           "iterations": zeros_i, "attempt": zeros_i, "escapes": zeros_i, "pending": zeros_b}
-    full = budget if (not converge and max_iter <= FULL_STEPS_MAX_ITER) else min(full_steps(A[0].dtype), budget)
+    full = budget if (not converge and max_iter <= FULL_STEPS_MAX_ITER) else min(full_steps(A[0].dtype, cold), budget)
     # A lane pending an escape after step k <= full needs at most
     # MAX_ESCAPES * CONVERGED_CAP more steps (<= budget - full).
-    if objective is not None:  # every lane's first step (full >= 1)
+    if cold:  # every lane's first step (full >= 1)
         st = _step(st, variant, converge, cap, eps, objective)
-    st = _repeat(lambda s: _step(s, variant, converge, cap, eps), st, full - (objective is not None))
+    # Compiled, steps unrolled after the exact first step fuse with it and
+    # made the fit slower (measured, float32 uniform, N = 1e5, CPU: converged
+    # 241 -> 311 ns per matrix with one step unrolled, 540 with two), so
+    # there they stay a while_loop.
+    st = _repeat(lambda s: _step(s, variant, converge, cap, eps), st, full - 1 if cold else full,
+                 unroll=not cold)
     rest = budget - full
     capacity = straggler_capacity(n) if n > 0 else 0
     R = _reorthonormalize(st["R"])
