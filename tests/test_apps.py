@@ -261,6 +261,9 @@ def test_benchmark_times_methods_on_recorded_data(tmp_path):
     by_key = {(r.key, r.mode): r for r in rows}
     assert ("svd", None) in by_key and ("copy", None) in by_key
     assert ("torchrot", "one_step") in by_key  # recorded data count as warm data
+    # the rows keep the methods' order; the copy is timed one call after each other method (interleaved)
+    assert [r.method for r in rows] == [m.name for m in methods if any(r.method == m.name for r in rows)]
+    assert len(by_key["copy", None].runs_ns) == len(rows) - 1
     for r in rows:
         if r.mode in ("converged_cold", "converged_warm") or r.key == "svd":
             assert r.max_error < 1e-4, r.method
