@@ -22,6 +22,7 @@ import math
 import os
 import platform
 import statistics
+import time
 from dataclasses import asdict, dataclass, field
 from typing import Callable
 
@@ -230,9 +231,27 @@ def median_seconds(fn: Callable[[], object], repeats: int, min_run_time: float, 
     return [timer.blocked_autorange(min_run_time=min_run_time).median for _ in range(repeats)]
 
 
-def _one_call_seconds(fn: Callable[[], object], threads: int = 1) -> float:
-    """Seconds of one call of ``fn`` (the Timer sets the thread count)."""
-    return tbench.Timer(stmt="fn()", globals={"fn": fn}, num_threads=threads).timeit(1).median
+#: An interleaved sample lasts at least this long (seconds): shorter calls are
+#: repeated back to back, so that the sample does not time the clock (a copy
+#: of 1e3 float32 matrices takes ~1 us; their 72 KB stay in cache either way).
+INTERLEAVED_MIN_SECONDS = 50e-6
+
+
+def _interleaved_seconds(fn: Callable[[], object]) -> float:
+    """Seconds per call of ``fn`` where it is called (no warm-up): one call,
+    or, if that took less than INTERLEAVED_MIN_SECONDS, the mean of enough
+    further calls back to back to last that long. Runs at the caller's
+    thread count."""
+    start = time.perf_counter()
+    fn()
+    first = time.perf_counter() - start
+    if first >= INTERLEAVED_MIN_SECONDS:
+        return first
+    calls = math.ceil(INTERLEAVED_MIN_SECONDS / max(first, 1e-9))
+    start = time.perf_counter()
+    for _ in range(calls):
+        fn()
+    return (time.perf_counter() - start) / calls
 
 
 def accuracy(R: Tensor, M64: Tensor, R_star: Tensor) -> dict:
@@ -272,12 +291,12 @@ def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, method
     ``data in WARM_DATA``; recorded solver data are warm). ``slow_repeats``:
     timed runs of the methods with a ``sample_n`` (seconds per call; None: ``repeats``).
 
-    The copy (key ``"copy"``) is timed interleaved: one call after each other
-    method, its row the median of those calls, so that it meets the caches as
-    the fits do. Timed back to back, it would run within this VM's 32 MB
+    The copy (key ``"copy"``) is timed interleaved: one sample after each
+    other method (_interleaved_seconds), its row the median of those samples,
+    so that it meets the caches as the fits do. Timed back to back, it would run within this VM's 32 MB
     last-level cache whatever the methods around it leave there (measured,
     N = 1e5 float32: back to back 0.83-1.03 ns per matrix; interleaved
-    0.85-3.24, medians 1.03-1.40)."""
+    0.85-4.4, depending on the method before it)."""
     n, dtype = M.shape[0], M.dtype
     warm = data in WARM_DATA if warm is None else warm
     out = torch.empty_like(M)
@@ -345,7 +364,7 @@ def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, method
             log(f"  {part:7s} {data:13s} {row.dtype:7s} N={n:<9d} {threads}T  {method.name:48s} "
                 f"{row.ns_per_matrix:10.2f} ns/matrix")
             if copy_method is not None and method is not copy_method:
-                copy_runs.append(_one_call_seconds(lambda: copy_method.run(M, init, out), threads))
+                copy_runs.append(_interleaved_seconds(lambda: copy_method.run(M, init, out)))
     finally:
         torch.set_num_threads(previous_threads)
     rows.sort(key=lambda r: rank[id(r)])
