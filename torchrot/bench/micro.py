@@ -293,10 +293,10 @@ def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, method
 
     The copy (key ``"copy"``) is timed interleaved: one sample after each
     other method (_interleaved_seconds), its row the median of those samples,
-    so that it meets the caches as the fits do. Timed back to back, it would run within this VM's 32 MB
-    last-level cache whatever the methods around it leave there (measured,
-    N = 1e5 float32: back to back 0.83-1.03 ns per matrix; interleaved
-    0.85-4.4, depending on the method before it)."""
+    so that it meets the caches as the fits do. Timed back to back, it would
+    run within this VM's 32 MB last-level cache whatever the methods around
+    it leave there (measured, N = 1e5 float32: back to back 0.83-1.03 ns per
+    matrix; interleaved 0.85-4.4, depending on the method before it)."""
     n, dtype = M.shape[0], M.dtype
     warm = data in WARM_DATA if warm is None else warm
     out = torch.empty_like(M)
@@ -304,16 +304,16 @@ def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, method
     k = min(n, ACCURACY_SAMPLE)
     M64 = M[:k].double()
     R_star = rotation_svd(M64)
-    rows: list[Row] = []
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(threads)
     copy_method = next((m for m in methods if m.key == "copy"), None)
     copy_runs: list[float] = []  # one copy call after each other method
-    # The copy last, so that its samples are in when its row is made (the rows keep the methods' order).
-    timed = [m for m in methods if m is not copy_method] + ([copy_method] if copy_method is not None else [])
-    position, rank = {id(m): i for i, m in enumerate(methods)}, {}
+    # The copy last (a stable sort), so that its samples are in when its row is
+    # made; each row is placed at its method's index, so the rows keep the methods' order.
+    timed = sorted(enumerate(methods), key=lambda indexed: indexed[1] is copy_method)
+    placed: dict[int, Row] = {}
     try:
-        for method in timed:
+        for index, method in timed:
             if not _applicable(method, warm, n, dtype, threads):
                 continue
             # slow methods run on the first sample_n matrices (their ns/matrix is flat in N)
@@ -359,15 +359,14 @@ def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, method
                 row.fallback_rate = (info.status == 1).double().mean().item()
             if steps is not None:
                 row.mean_iterations = steps.double().mean().item()
-            rows.append(row)
-            rank[id(row)] = position[id(method)]
+            placed[index] = row
             log(f"  {part:7s} {data:13s} {row.dtype:7s} N={n:<9d} {threads}T  {method.name:48s} "
                 f"{row.ns_per_matrix:10.2f} ns/matrix")
             if copy_method is not None and method is not copy_method:
                 copy_runs.append(_interleaved_seconds(lambda: copy_method.run(M, init, out)))
     finally:
         torch.set_num_threads(previous_threads)
-    rows.sort(key=lambda r: rank[id(r)])
+    rows: list[Row] = [placed[i] for i in sorted(placed)]
     by_key = {r.key: r for r in rows if r.key in ("svd", "copy")}
     svd, copy = by_key.get("svd"), by_key.get("copy")
     for row in rows:
