@@ -288,6 +288,7 @@ def test_rotation_layer_rows():
     assert [r["batch"] for r in rows] == [8, 40]
     for r in rows:
         assert r["torchrot_vs_svd"] == pytest.approx(r["torchrot_us"] / r["svd_autograd_us"])
+        assert r["autograd_floor_us"] > 0
     assert "| 40 |" in micro.format_layer_table(rows)
 
 

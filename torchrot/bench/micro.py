@@ -473,8 +473,10 @@ def single_matrix_overhead(min_run_time: float = 0.5) -> dict[str, float]:
 def rotation_layer(batches: tuple[int, ...], min_run_time: float = 0.05, repeats: int = 3) -> list[dict]:
     """A training step's rotation layer: microseconds per forward + backward of
     ``torchrot.nn.RotationFit`` on a float32 ``(B, 3, 3)`` batch (gaussian
-    network outputs), beside the same through SVD autograd (rotation_svd) and a
-    ``copy_`` of the batch, timed in the same run; 1 thread."""
+    network outputs), beside the same through SVD autograd (rotation_svd), the
+    same step with a ``clone`` in the layer's place (what PyTorch's autograd
+    engine and the loss's own ops cost: the floor of any layer) and a ``copy_``
+    of the batch, timed in the same run, in interleaved rounds; 1 thread."""
     layer = torchrot.nn.RotationFit()
     results = []
     for batch in batches:
@@ -487,19 +489,26 @@ def rotation_layer(batches: tuple[int, ...], min_run_time: float = 0.05, repeats
             (fit(M) * G).sum().backward()
 
         calls = {"copy_": lambda: buffer.copy_(M.detach()), "svd": lambda: step(rotation_svd),
-                 "torchrot": lambda: step(layer)}
-        us = {name: statistics.median(median_seconds(fn, repeats, min_run_time)) * 1e6 for name, fn in calls.items()}
+                 "floor": lambda: step(torch.clone), "torchrot": lambda: step(layer)}
+        samples = {name: [] for name in calls}
+        for _ in range(repeats):
+            for name, fn in calls.items():
+                samples[name] += median_seconds(fn, 1, min_run_time)
+        us = {name: statistics.median(s) * 1e6 for name, s in samples.items()}
         results.append({"batch": batch, "copy_us": us["copy_"], "svd_autograd_us": us["svd"],
-                        "torchrot_us": us["torchrot"], "torchrot_vs_svd": us["torchrot"] / us["svd"]})
+                        "autograd_floor_us": us["floor"], "torchrot_us": us["torchrot"],
+                        "torchrot_vs_svd": us["torchrot"] / us["svd"]})
     return results
 
 
 def format_layer_table(results: list[dict]) -> str:
-    lines = ["| batch | nn.RotationFit fwd+bwd (us) | SVD autograd fwd+bwd (us) | torchrot / SVD | copy_ (us) |",
-             "|---|---|---|---|---|"]
+    lines = ["| batch | nn.RotationFit fwd+bwd (us) | SVD autograd fwd+bwd (us) | torchrot / SVD | "
+             "clone in its place (us) | copy_ (us) |",
+             "|---|---|---|---|---|---|"]
     for r in results:
         lines.append(f"| {r['batch']:,} | {r['torchrot_us']:.1f} | {r['svd_autograd_us']:.1f} | "
-                     f"{r['torchrot_vs_svd']:.3f}x ({1 / r['torchrot_vs_svd']:.1f}x faster) | {r['copy_us']:.2f} |")
+                     f"{r['torchrot_vs_svd']:.3f}x ({1 / r['torchrot_vs_svd']:.1f}x faster) | "
+                     f"{r['autograd_floor_us']:.1f} | {r['copy_us']:.2f} |")
     return "\n".join(lines)
 
 
