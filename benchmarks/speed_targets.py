@@ -23,22 +23,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 
 import torch
 
 import torchrot
 from torchrot.bench import apps, data, micro
 from torchrot.testing import make_matrices, soa_view
-
-def _interleaved(methods: dict, rounds: int, min_time: float) -> dict[str, float]:
-    """Median seconds per call of each method over ``rounds`` rounds, each
-    round timing every method once (the suite's timer, micro.median_seconds)."""
-    runs: dict[str, list[float]] = {name: [] for name in methods}
-    for _ in range(rounds):
-        for name, fn in methods.items():
-            runs[name] += micro.median_seconds(fn, 1, min_time)
-    return {name: statistics.median(r) for name, r in runs.items()}
 
 
 def _failures(R: torch.Tensor, M64: torch.Tensor, R_svd: torch.Tensor) -> int:
@@ -80,7 +70,7 @@ def _bounds(ns: dict[str, float], cold_ns: dict[str, float], M: torch.Tensor, in
         "one-step": lambda: fit(Mc, Ic, max_iter=1, out=out_c),
         "converged warm": lambda: fit(Mc, Ic, out=out_c),
     }
-    ns_c = {k: v / CACHED_N * 1e9 for k, v in _interleaved(cached, rounds, min_time).items()}
+    ns_c = {k: v / CACHED_N * 1e9 for k, v in micro.interleaved_median_seconds(cached, rounds, min_time).items()}
     copy, add, elem = ns[COPY], ns[ADD], M.element_size() * 9
     print(f"\nWhat bounds them (this run, ns/matrix):\n- bytes: a warm-start call reads M and init and writes R, "
           f"{3 * elem} B/matrix against copy_'s {2 * elem} B; torch.add(M, init, out=) moves the same bytes in "
@@ -133,7 +123,7 @@ def main() -> None:
         CONVERGED: lambda: torchrot.fit_rotation(M, init, out=out),
         "converged from the warm start, SoA views": lambda: torchrot.fit_rotation(M_soa, init_soa, out=out_soa),
     }
-    ns = {k: v / n * 1e9 for k, v in _interleaved(methods, args.rounds, args.min_time).items()}
+    ns = {k: v / n * 1e9 for k, v in micro.interleaved_median_seconds(methods, args.rounds, args.min_time).items()}
     copy = ns[COPY]
     print(f"\nrecorded ARAP data (57k-vertex capsule), N = {n:,}, float32, 1 thread, median of {args.rounds} rounds")
     print(f"{'method':44s} {'ns/matrix':>10s} {'x copy_':>8s}")
@@ -148,10 +138,10 @@ def main() -> None:
           f"({one_step_failures / n:.2%}), converged {converged_failures}")
 
     U = make_matrices("uniform", 100_000, 0, torch.float32)
-    cold = _interleaved({SVD: lambda: torchrot.rotation_svd(U), COLD: lambda: torchrot.fit_rotation(U),
-                         COLD_1: lambda: torchrot.fit_rotation(U, max_iter=1),
-                         COLD_2: lambda: torchrot.fit_rotation(U, max_iter=2)},
-                        args.rounds, args.min_time)
+    cold = micro.interleaved_median_seconds({SVD: lambda: torchrot.rotation_svd(U), COLD: lambda: torchrot.fit_rotation(U),
+                                             COLD_1: lambda: torchrot.fit_rotation(U, max_iter=1),
+                                             COLD_2: lambda: torchrot.fit_rotation(U, max_iter=2)},
+                                            args.rounds, args.min_time)
     cold_ns = {k: v / U.shape[0] * 1e9 for k, v in cold.items()}
     print(f"\nuniform [0, 1], N = 100,000, converged cold: torchrot {cold_ns[COLD]:.1f} ns/matrix, "
           f"torch.linalg.svd {cold_ns[SVD]:.1f}: {cold[SVD] / cold[COLD]:.1f}x")

@@ -231,6 +231,18 @@ def median_seconds(fn: Callable[[], object], repeats: int, min_run_time: float, 
     return [timer.blocked_autorange(min_run_time=min_run_time).median for _ in range(repeats)]
 
 
+def interleaved_median_seconds(calls: dict[str, Callable[[], object]], rounds: int,
+                               min_run_time: float) -> dict[str, float]:
+    """Median seconds per call of each of ``calls`` over ``rounds`` rounds, each
+    round timing every call once with median_seconds, so that slow drifts of a
+    shared machine's load meet every call alike."""
+    runs: dict[str, list[float]] = {name: [] for name in calls}
+    for _ in range(rounds):
+        for name, fn in calls.items():
+            runs[name] += median_seconds(fn, 1, min_run_time)
+    return {name: statistics.median(r) for name, r in runs.items()}
+
+
 #: An interleaved sample lasts at least this long (seconds): shorter calls are
 #: repeated back to back, so that the sample does not time the clock (a copy
 #: of 1e3 float32 matrices takes ~1 us; their 72 KB stay in cache either way).
@@ -490,11 +502,7 @@ def rotation_layer(batches: tuple[int, ...], min_run_time: float = 0.05, repeats
 
         calls = {"copy_": lambda: buffer.copy_(M.detach()), "svd": lambda: step(rotation_svd),
                  "floor": lambda: step(torch.clone), "torchrot": lambda: step(layer)}
-        samples = {name: [] for name in calls}
-        for _ in range(repeats):
-            for name, fn in calls.items():
-                samples[name] += median_seconds(fn, 1, min_run_time)
-        us = {name: statistics.median(s) * 1e6 for name, s in samples.items()}
+        us = {name: seconds * 1e6 for name, seconds in interleaved_median_seconds(calls, repeats, min_run_time).items()}
         results.append({"batch": batch, "copy_us": us["copy_"], "svd_autograd_us": us["svd"],
                         "autograd_floor_us": us["floor"], "torchrot_us": us["torchrot"],
                         "torchrot_vs_svd": us["torchrot"] / us["svd"]})
