@@ -383,12 +383,15 @@ at::Tensor fit_rotation_backward_cpu_op(const at::Tensor& grad, const at::Tensor
 #define TORCHROT_STRINGIFY_(x) #x
 #define TORCHROT_STRINGIFY(x) TORCHROT_STRINGIFY_(x)
 #define TORCHROT_GRADIENT_EPS_ARG "float gradient_eps=" TORCHROT_STRINGIFY(TORCHROT_DEFAULT_GRADIENT_EPS)
+// The arguments and results of fit_rotation and fit_rotation_backward, each
+// shared with its Python Autograd twin below.
+#define TORCHROT_FIT_ROTATION_SCHEMA \
+  "(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\", " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor"
+#define TORCHROT_FIT_ROTATION_BACKWARD_SCHEMA "(Tensor grad, Tensor R, Tensor M, " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor"
 
 TORCH_LIBRARY(torchrot, m) {
   // gradient_eps only affects the derivative (see fit_rotation_backward).
-  m.def(
-      "fit_rotation(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\", "
-      TORCHROT_GRADIENT_EPS_ARG ") -> Tensor");
+  m.def("fit_rotation" TORCHROT_FIT_ROTATION_SCHEMA);
   m.def(
       "fit_rotation_out(Tensor M, Tensor? init, int? max_iter, str variant, Tensor(a!) out) -> ()");
   m.def(
@@ -397,7 +400,13 @@ TORCH_LIBRARY(torchrot, m) {
   // dL/dM given dL/dR = grad at R = fit_rotation(M), through the optimality
   // condition (R^T M symmetric) with Tikhonov damping gradient_eps; the same
   // map gives the forward-mode tangent dR from dM.
-  m.def("fit_rotation_backward(Tensor grad, Tensor R, Tensor M, " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor");
+  m.def("fit_rotation_backward" TORCHROT_FIT_ROTATION_BACKWARD_SCHEMA);
+  // Twins of fit_rotation and fit_rotation_backward that carry only their
+  // Python Autograd kernels (torchrot/_autograd.py): the C++ Autograd kernel
+  // of each (csrc/autograd_dispatch.cpp) hands them the calls that may record
+  // a derivative.
+  m.def("_fit_rotation_python_autograd" TORCHROT_FIT_ROTATION_SCHEMA);
+  m.def("_fit_rotation_backward_python_autograd" TORCHROT_FIT_ROTATION_BACKWARD_SCHEMA);
   // fit_rotation with its reverse-mode derivative recorded in C++
   // (csrc/training.cpp): torchrot.fit_rotation's plain eager call.
   m.def(
@@ -417,9 +426,7 @@ TORCH_LIBRARY(torchrot, m) {
   // of a custom-op call, with one argument, and with fit_rotation's
   // signature and an (uninitialised) output of M's shape.
   m.def("_empty_op(Tensor M) -> ()");
-  m.def(
-      "_empty_fit_rotation(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\", "
-      TORCHROT_GRADIENT_EPS_ARG ") -> Tensor");
+  m.def("_empty_fit_rotation" TORCHROT_FIT_ROTATION_SCHEMA);
 }
 
 TORCH_LIBRARY_IMPL(torchrot, CPU, m) {

@@ -49,7 +49,7 @@ at::Tensor call_fit_rotation_backward(const at::Tensor& grad, const at::Tensor& 
 
 struct FitRotationAutograd : public torch::autograd::Function<FitRotationAutograd> {
   // Straight to the device kernel: Function::apply only turns grad mode off,
-  // which would still pass through the operator's Python Autograd kernel.
+  // which would still pass through the operator's Autograd kernel.
   static at::Tensor forward(AutogradContext* ctx, const at::Tensor& M, const std::optional<at::Tensor>& init,
                             std::optional<int64_t> max_iter, c10::string_view variant, double gradient_eps) {
     at::Tensor R;

@@ -8,9 +8,11 @@ rank-deficient M, half-turns), torch.func, torch.compile, autocast, and errors.
 """
 from __future__ import annotations
 
+import sys
 
 import pytest
 import torch
+from torch.autograd import forward_ad
 from torch.func import grad, jacfwd, jacrev, jvp, vmap
 
 import torchrot
@@ -422,6 +424,65 @@ def test_eager_call_without_derivative_records_nothing():
             R = torchrot.fit_rotation(M_in, init_in)
         assert R.grad_fn is None and not R.requires_grad
         assert torch.equal(R, expected)
+
+
+def _torchrot_python_calls(fn):
+    """fn() and the names of the functions in torchrot/_autograd.py that ran
+    during it (this thread's Python calls, through sys.setprofile)."""
+    source = torchrot._autograd.__file__
+    names = []
+
+    def profile(frame, event, arg):
+        if event == "call" and frame.f_code.co_filename == source:
+            names.append(frame.f_code.co_name)
+
+    sys.setprofile(profile)
+    try:
+        result = fn()
+    finally:
+        sys.setprofile(None)
+    return result, names
+
+
+def _without_grad_mode(fn, *args):
+    with torch.no_grad():
+        return fn(*args)
+
+
+def test_operator_calls_with_nothing_to_record_run_no_python():
+    """torch.ops.torchrot.fit_rotation and fit_rotation_backward decide in C++
+    (csrc/autograd_dispatch.cpp) whether a call may record a derivative: with
+    nothing to record (grad mode off, no argument requiring grad, no tangent,
+    also inside an open dual level) they run below autograd without a Python
+    frame and give the same result bit for bit; a call that records runs the
+    Python Autograd kernel, with its derivatives in both modes."""
+    M, init = make_warm_start("warm", 9, seed=9, dtype=torch.float64)
+    G = make_matrices("gaussian", 9, seed=10, dtype=torch.float64)
+    with torch._C._AutoDispatchBelowAutograd():
+        R = op.fit_rotation(M, init)
+        tangent = op.fit_rotation_backward(G, R, M)
+    quiet = {
+        "plain": lambda: op.fit_rotation(M, init),
+        "defaults": lambda: op.fit_rotation.default(M, init),
+        "grad mode off": lambda: _without_grad_mode(op.fit_rotation, M.clone().requires_grad_(), init),
+        "backward": lambda: op.fit_rotation_backward(G, R, M),
+    }
+    for name, call in quiet.items():
+        result, python = _torchrot_python_calls(call)
+        expected = tangent if name == "backward" else R
+        assert python == [] and result.grad_fn is None and torch.equal(result, expected), name
+    with forward_ad.dual_level():
+        result, python = _torchrot_python_calls(lambda: op.fit_rotation(M, init))
+        assert python == [] and forward_ad.unpack_dual(result).tangent is None and torch.equal(result, R)
+        dual = forward_ad.make_dual(M, G)
+        result, python = _torchrot_python_calls(lambda: op.fit_rotation(dual, init))
+        assert "kernel" in python and torch.equal(forward_ad.unpack_dual(result).tangent, tangent)
+
+    Mg = M.clone().requires_grad_()
+    result, python = _torchrot_python_calls(lambda: op.fit_rotation(Mg, init))
+    assert "kernel" in python and result.grad_fn is not None and torch.equal(result.detach(), R)
+    (g,) = torch.autograd.grad(result, Mg, G)
+    assert torch.equal(g, tangent)
 
 
 def test_eager_entry_leaves_subclasses_and_modes_to_torch_ops():

@@ -20,9 +20,11 @@ exact maximiser, evaluated at the returned R.
 
 Registered here:
   * ``FitRotationFunction`` (forward-mode ``jvp``, generated vmap rule) as
-    the Autograd kernel of ``torchrot::fit_rotation``, and
+    the Python Autograd kernel of ``torchrot::fit_rotation``, and
     ``_TangentFunction`` (raising when differentiated) as that of
-    ``torchrot::fit_rotation_backward``: first derivatives in reverse and
+    ``torchrot::fit_rotation_backward`` (the operators' C++ Autograd kernels,
+    csrc/autograd_dispatch.cpp, hand them the calls that may record a
+    derivative and run the others below autograd): first derivatives in reverse and
     forward mode, under every torch.func transform and composition, in eager
     and under torch.compile (which traces the operator; :func:`torchrot.
     fit_rotation` calls it); second derivatives raise;
@@ -74,9 +76,9 @@ class _TangentFunction(torch.autograd.Function):
 
 
 def _below_autograd(op, *args) -> torch.Tensor:
-    """``op(*args)`` straight to its kernel, past the operator's Python
-    Autograd kernel: for calls that record no derivative outside torch.func
-    (a Python kernel call costs more than a small fit)."""
+    """``op(*args)`` straight to its kernel, past the operator's Autograd
+    kernel: for calls that record no derivative outside torch.func, whatever
+    tangents their tensors carry."""
     with torch._C._AutoDispatchBelowAutograd():
         return op(*args)
 
@@ -169,7 +171,10 @@ class FitRotationFunction(torch.autograd.Function):
 # came out as zero) and no setup_context (torch.func.grad raised). These
 # Autograd kernels apply the autograd.Functions above instead, so the operator
 # is differentiable in every mode and under every torch.func transform, also
-# where torch.compile traces it.
+# where torch.compile traces it. Each is registered on the operator's twin
+# torchrot::_<name>_python_autograd: the operator's own Autograd kernel
+# (csrc/autograd_dispatch.cpp) runs calls that can record no derivative below
+# autograd in C++ and hands the others, with their dispatch keys, to the twin.
 
 _lib = torch.library.Library("torchrot", "IMPL")
 _FIT_OP = torch.ops.torchrot.fit_rotation.default
@@ -191,7 +196,8 @@ def _has_tangent(args) -> bool:
 
 def _register_autograd(name: str, function: type[torch.autograd.Function]) -> None:
     """Makes ``function`` (applied to the operator's full argument list) the
-    Autograd kernel of ``torchrot::<name>``."""
+    Python Autograd kernel of ``torchrot::<name>``, registered on its twin
+    ``torchrot::_<name>_python_autograd`` (see above)."""
     op = getattr(torch.ops.torchrot, name).default
     defaults = tuple(a.default_value for a in op._schema.arguments)
     # Function.apply without its per-call signature binding (arguments are
@@ -220,7 +226,7 @@ def _register_autograd(name: str, function: type[torch.autograd.Function]) -> No
         with torch._C._AutoDispatchBelowAutograd():
             return op.redispatch(keyset & torch._C._after_autograd_keyset, *args)
 
-    _lib.impl(name, kernel, "Autograd", with_keyset=True)
+    _lib.impl(f"_{name}_python_autograd", kernel, "Autograd", with_keyset=True)
 
 
 _register_autograd("fit_rotation", FitRotationFunction)

@@ -475,6 +475,7 @@ def single_matrix_overhead(min_run_time: float = 0.5) -> dict[str, float]:
         "empty custom op (fit_rotation's signature and output)":
             lambda: torch.ops.torchrot._empty_fit_rotation(M, None, None, "conservative"),
         "torchrot.fit_rotation(M)": lambda: torchrot.fit_rotation(M),
+        "torch.ops.torchrot.fit_rotation(M)": lambda: torch.ops.torchrot.fit_rotation(M),
         "torchrot.fit_rotation(M, out=out)": lambda: torchrot.fit_rotation(M, out=out),
         "torchrot.fit_rotation(M, R, max_iter=1, out=R)": lambda: torchrot.fit_rotation(M, R, max_iter=1, out=R),
         "torch.linalg.svd special Procrustes": lambda: rotation_svd(M),
