@@ -484,6 +484,14 @@ def test_operator_calls_with_nothing_to_record_run_no_python():
     (g,) = torch.autograd.grad(result, Mg, G)
     assert torch.equal(g, tangent)
 
+    # A torch.compile'd training step: traced through the Python kernel, its
+    # graphs then call both operators with grad mode off.
+    compiled = torch.compile(lambda M, init: op.fit_rotation(M, init) * 2, fullgraph=True)
+    step = lambda: torch.autograd.grad(compiled(Mg, init), Mg, G)  # noqa: E731
+    step()
+    (g,), python = _torchrot_python_calls(step)
+    assert python == [] and torch.equal(g, 2 * tangent)
+
 
 def test_eager_entry_leaves_subclasses_and_modes_to_torch_ops():
     """The plain eager call's direct entry (torchrot._C.fit_rotation_eager)
