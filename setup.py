@@ -131,8 +131,7 @@ setup(
     ext_modules=[
         CppExtension(
             name="torchrot._C",
-            sources=["csrc/module.cpp", "csrc/ops.cpp", "csrc/training.cpp", "csrc/autograd_dispatch.cpp",
-                     "csrc/cpu/dispatch.cpp"],
+            sources=["csrc/module.cpp", "csrc/ops.cpp", "csrc/autograd.cpp", "csrc/cpu/dispatch.cpp"],
             depends=sorted(glob.glob("csrc/**/*.h", recursive=True)),
             extra_compile_args=COMMON_FLAGS + SANITIZE_FLAGS,
             extra_link_args=["-fopenmp"] + SANITIZE_FLAGS,

@@ -60,7 +60,7 @@ PyObject* constants(PyObject*, PyObject*) {
 }
 
 // fit_rotation_eager(M, init, max_iter, variant, gradient_eps): the operator
-// torchrot::_fit_rotation_autograd (csrc/training.cpp), called through the
+// torchrot::_fit_rotation_autograd (csrc/autograd.cpp), called through the
 // dispatcher as torch.ops calls it (the GIL released around it), but without
 // torch.ops' Python argument parsing and boxing, which cost more than half of
 // a one-matrix call on this project's VM (12.2 against 5.7 us). The arguments

@@ -403,12 +403,12 @@ TORCH_LIBRARY(torchrot, m) {
   m.def("fit_rotation_backward" TORCHROT_FIT_ROTATION_BACKWARD_SCHEMA);
   // Twins of fit_rotation and fit_rotation_backward that carry only their
   // Python Autograd kernels (torchrot/_autograd.py): the C++ Autograd kernel
-  // of each (csrc/autograd_dispatch.cpp) hands them the calls that may record
-  // a derivative.
+  // of each (csrc/autograd.cpp) hands them the calls of torch.func, forward
+  // mode and tracing.
   m.def("_fit_rotation_python_autograd" TORCHROT_FIT_ROTATION_SCHEMA);
   m.def("_fit_rotation_backward_python_autograd" TORCHROT_FIT_ROTATION_BACKWARD_SCHEMA);
   // fit_rotation with its reverse-mode derivative recorded in C++
-  // (csrc/training.cpp): torchrot.fit_rotation's plain eager call.
+  // (csrc/autograd.cpp): torchrot.fit_rotation's plain eager call.
   m.def(
       "_fit_rotation_autograd(Tensor M, Tensor? init, int? max_iter, str variant, float gradient_eps) -> Tensor");
   // Which CPU kernel object runs in the calling thread: "scalar", "default",

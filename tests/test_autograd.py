@@ -449,13 +449,15 @@ def _without_grad_mode(fn, *args):
         return fn(*args)
 
 
-def test_operator_calls_with_nothing_to_record_run_no_python():
+def test_operator_calls_run_no_python_unless_a_transform_or_tangent_needs_it():
     """torch.ops.torchrot.fit_rotation and fit_rotation_backward decide in C++
-    (csrc/autograd_dispatch.cpp) whether a call may record a derivative: with
-    nothing to record (grad mode off, no argument requiring grad, no tangent,
-    also inside an open dual level) they run below autograd without a Python
-    frame and give the same result bit for bit; a call that records runs the
-    Python Autograd kernel, with its derivatives in both modes."""
+    (csrc/autograd.cpp) what a call records: with nothing to record (grad
+    mode off, no argument requiring grad, no tangent, also inside an open
+    dual level) they run below autograd, and a fit whose M alone requires
+    grad records the C++ node of torchrot.fit_rotation's plain call, both
+    without a Python frame; the results and gradients are those of the Python
+    Autograd kernel, bit for bit, which still records the other calls (a
+    tangent, another argument requiring grad)."""
     M, init = make_warm_start("warm", 9, seed=9, dtype=torch.float64)
     G = make_matrices("gaussian", 9, seed=10, dtype=torch.float64)
     with torch._C._AutoDispatchBelowAutograd():
@@ -479,10 +481,12 @@ def test_operator_calls_with_nothing_to_record_run_no_python():
         assert "kernel" in python and torch.equal(forward_ad.unpack_dual(result).tangent, tangent)
 
     Mg = M.clone().requires_grad_()
-    result, python = _torchrot_python_calls(lambda: op.fit_rotation(Mg, init))
-    assert "kernel" in python and result.grad_fn is not None and torch.equal(result.detach(), R)
-    (g,) = torch.autograd.grad(result, Mg, G)
-    assert torch.equal(g, tangent)
+    for init_in, recorder in ((init, []), (init.clone().requires_grad_(), ["kernel"])):
+        result, python = _torchrot_python_calls(lambda: op.fit_rotation(Mg, init_in))
+        assert python[:1] == recorder and torch.equal(result.detach(), R)
+        assert ("FitRotationAutograd" in result.grad_fn.name()) == (recorder == [])
+        (g,) = torch.autograd.grad(result, Mg, G)
+        assert torch.equal(g, tangent)
 
     # A torch.compile'd training step: traced through the Python kernel, its
     # graphs then call both operators with grad mode off.

@@ -23,8 +23,8 @@ Registered here:
     the Python Autograd kernel of ``torchrot::fit_rotation``, and
     ``_TangentFunction`` (raising when differentiated) as that of
     ``torchrot::fit_rotation_backward`` (the operators' C++ Autograd kernels,
-    csrc/autograd_dispatch.cpp, hand them the calls that may record a
-    derivative and run the others below autograd): first derivatives in reverse and
+    csrc/autograd.cpp, hand them the calls of torch.func, forward mode and
+    tracing): first derivatives in reverse and
     forward mode, under every torch.func transform and composition, in eager
     and under torch.compile (which traces the operator; :func:`torchrot.
     fit_rotation` calls it); second derivatives raise;
@@ -173,8 +173,10 @@ class FitRotationFunction(torch.autograd.Function):
 # is differentiable in every mode and under every torch.func transform, also
 # where torch.compile traces it. Each is registered on the operator's twin
 # torchrot::_<name>_python_autograd: the operator's own Autograd kernel
-# (csrc/autograd_dispatch.cpp) runs calls that can record no derivative below
-# autograd in C++ and hands the others, with their dispatch keys, to the twin.
+# (csrc/autograd.cpp) runs calls that can record no derivative below
+# autograd, records a plain reverse-mode fit in M with a C++ node, and hands
+# the others (torch.func, forward mode, tracing), with their dispatch keys,
+# to the twin.
 
 _lib = torch.library.Library("torchrot", "IMPL")
 _FIT_OP = torch.ops.torchrot.fit_rotation.default

@@ -131,7 +131,7 @@ def fit_rotation(
     if out is None and _plain_eager(M, compiling):
         # The common call, in training or not: one C++ operator that runs the
         # kernel and, where M requires grad, records the reverse-mode
-        # derivative (csrc/training.cpp), instead of the operator's Python
+        # derivative (csrc/autograd.cpp), instead of the operator's Python
         # Autograd kernel or a Python context manager, which cost several times a
         # small fit. Tested first, with the fewest Python operations: a small
         # batch's fit costs about as much as them.
@@ -158,7 +158,7 @@ def fit_rotation(
         return torch.ops.torchrot.fit_rotation.default(M, init, max_iter, variant, gradient_eps)
     # Nothing to differentiate: below the operator's Autograd kernel, which
     # hands every call under a torch.func transform (vmap, say) to its Python
-    # kernel (csrc/autograd_dispatch.cpp), more than the cost of a small fit.
+    # kernel (csrc/autograd.cpp), more than the cost of a small fit.
     with torch._C._AutoDispatchBelowAutograd():
         return torch.ops.torchrot.fit_rotation.default(M, init, max_iter, variant, gradient_eps)
 
