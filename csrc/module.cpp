@@ -60,8 +60,8 @@ PyObject* constants(PyObject*, PyObject*) {
 }
 
 // fit_rotation_eager(M, init, max_iter, variant, gradient_eps): the operator
-// torchrot::_fit_rotation_autograd (csrc/autograd.cpp), called through the
-// dispatcher as torch.ops calls it (the GIL released around it), but without
+// torchrot::fit_rotation (its Autograd kernel: csrc/autograd.cpp), called
+// through the dispatcher as torch.ops calls it (the GIL released around it), but without
 // torch.ops' Python argument parsing and boxing, which cost more than half of
 // a one-matrix call on this project's VM (12.2 against 5.7 us). The arguments
 // are the operator's, already type-checked by torchrot.fit_rotation. Returns
@@ -93,7 +93,7 @@ PyObject* fit_rotation_eager(PyObject*, PyObject* const* args, Py_ssize_t nargs)
   std::optional<at::Tensor> init;
   if (args[1] != Py_None) init = THPVariable_Unpack(args[1]);
   static auto op = c10::Dispatcher::singleton()
-                       .findSchemaOrThrow("torchrot::_fit_rotation_autograd", "")
+                       .findSchemaOrThrow("torchrot::fit_rotation", "")
                        .typed<torchrot::FitRotationSignature>();
   at::Tensor R;
   {
@@ -107,7 +107,7 @@ PyObject* fit_rotation_eager(PyObject*, PyObject* const* args, Py_ssize_t nargs)
 PyMethodDef methods[] = {
     {"constants", constants, METH_NOARGS, "The limits, defaults and tolerances of csrc/limits.h, by name."},
     {"fit_rotation_eager", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(fit_rotation_eager)),
-     METH_FASTCALL, "torchrot::_fit_rotation_autograd for torchrot.fit_rotation's plain eager call."},
+     METH_FASTCALL, "torchrot::fit_rotation for torchrot.fit_rotation's plain eager call."},
     {nullptr, nullptr, 0, nullptr},
 };
 

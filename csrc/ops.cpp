@@ -407,10 +407,6 @@ TORCH_LIBRARY(torchrot, m) {
   // mode and tracing.
   m.def("_fit_rotation_python_autograd" TORCHROT_FIT_ROTATION_SCHEMA);
   m.def("_fit_rotation_backward_python_autograd" TORCHROT_FIT_ROTATION_BACKWARD_SCHEMA);
-  // fit_rotation with its reverse-mode derivative recorded in C++
-  // (csrc/autograd.cpp): torchrot.fit_rotation's plain eager call.
-  m.def(
-      "_fit_rotation_autograd(Tensor M, Tensor? init, int? max_iter, str variant, float gradient_eps) -> Tensor");
   // Which CPU kernel object runs in the calling thread: "scalar", "default",
   // "avx2" or "avx512".
   m.def("cpu_kernel() -> str", [] { return cpu_kernel_name(); });

@@ -394,9 +394,11 @@ def test_opcheck_backward_and_autograd_registration():
 
 
 def test_training_call_records_in_cpp():
-    """torchrot.fit_rotation's plain reverse-mode call records its derivative
-    in C++ (torchrot::_fit_rotation_autograd): the same gradients, bit for
-    bit, as the operator's Python Autograd kernel; init gets none."""
+    """A plain reverse-mode fit (torchrot.fit_rotation, torch.ops) records its
+    derivative in C++, in the operator's Autograd kernel (csrc/autograd.cpp):
+    the same gradients, bit for bit, as the Python Autograd kernel (its twin
+    operator's, which the C++ kernel hands torch.func, forward-mode and
+    traced calls); init gets none."""
     M, init = make_warm_start("warm", 37, seed=5, dtype=torch.float32)
     G = make_matrices("gaussian", 37, seed=6, dtype=torch.float32)
     for kwargs in ({}, {"max_iter": 1}):
@@ -405,10 +407,10 @@ def test_training_call_records_in_cpp():
         assert "FitRotationAutograd" in R.grad_fn.name()  # the C++ node
         (g_cpp,) = torch.autograd.grad(R, Mc, G)
         Mp = M.clone().requires_grad_()
-        (g_py,) = torch.autograd.grad(op.fit_rotation(Mp, init, kwargs.get("max_iter"), "conservative", 1e-6), Mp, G)
+        R_py = op._fit_rotation_python_autograd(Mp, init, kwargs.get("max_iter"), "conservative", 1e-6)
+        assert "FitRotationFunction" in R_py.grad_fn.name()
+        (g_py,) = torch.autograd.grad(R_py, Mp, G)
         assert torch.equal(g_cpp, g_py)
-    torch.library.opcheck(op._fit_rotation_autograd.default,
-                          (M.double().requires_grad_(), init.double(), None, "conservative", 1e-6))
 
 
 def test_eager_call_without_derivative_records_nothing():
@@ -452,12 +454,12 @@ def _without_grad_mode(fn, *args):
 def test_operator_calls_run_no_python_unless_a_transform_or_tangent_needs_it():
     """torch.ops.torchrot.fit_rotation and fit_rotation_backward decide in C++
     (csrc/autograd.cpp) what a call records: with nothing to record (grad
-    mode off, no argument requiring grad, no tangent, also inside an open
-    dual level) they run below autograd, and a fit whose M alone requires
-    grad records the C++ node of torchrot.fit_rotation's plain call, both
-    without a Python frame; the results and gradients are those of the Python
-    Autograd kernel, bit for bit, which still records the other calls (a
-    tangent, another argument requiring grad)."""
+    mode off, nothing requiring grad but init, which receives no gradient; no
+    tangent, also inside an open dual level) they run below autograd, and a
+    fit whose M requires grad records the C++ node of torchrot.fit_rotation's
+    plain call, both without a Python frame; the results and gradients are
+    those of the Python Autograd kernel, bit for bit, which still records the
+    calls with a tangent."""
     M, init = make_warm_start("warm", 9, seed=9, dtype=torch.float64)
     G = make_matrices("gaussian", 9, seed=10, dtype=torch.float64)
     with torch._C._AutoDispatchBelowAutograd():
@@ -481,12 +483,18 @@ def test_operator_calls_run_no_python_unless_a_transform_or_tangent_needs_it():
         assert "kernel" in python and torch.equal(forward_ad.unpack_dual(result).tangent, tangent)
 
     Mg = M.clone().requires_grad_()
-    for init_in, recorder in ((init, []), (init.clone().requires_grad_(), ["kernel"])):
+    for init_in in (init, init.clone().requires_grad_()):
         result, python = _torchrot_python_calls(lambda: op.fit_rotation(Mg, init_in))
-        assert python[:1] == recorder and torch.equal(result.detach(), R)
-        assert ("FitRotationAutograd" in result.grad_fn.name()) == (recorder == [])
+        assert python == [] and "FitRotationAutograd" in result.grad_fn.name() and torch.equal(result.detach(), R)
         (g,) = torch.autograd.grad(result, Mg, G)
         assert torch.equal(g, tangent)
+    # init receives no gradient: where only init requires grad, nothing is
+    # recorded, as through torchrot.fit_rotation and under torch.compile.
+    init_g = init.clone().requires_grad_()
+    result, python = _torchrot_python_calls(lambda: op.fit_rotation(M, init_g))
+    assert python == [] and result.grad_fn is None and torch.equal(result, R)
+    for fit in (torchrot.fit_rotation, torch.compile(torchrot.fit_rotation, fullgraph=True)):
+        assert not fit(M, init_g).requires_grad
 
     # A torch.compile'd training step: traced through the Python kernel, its
     # graphs then call both operators with grad mode off.
@@ -529,7 +537,7 @@ def test_eager_entry_leaves_subclasses_and_modes_to_torch_ops():
     with Recorder() as mode:
         assert entry(M, init, None, "conservative", GRADIENT_EPS) is NotImplemented
         R = torchrot.fit_rotation(M, init)
-    assert op._fit_rotation_autograd.default in mode.calls and torch.equal(R, expected)
+    assert op.fit_rotation.default in mode.calls and torch.equal(R, expected)
 
 
 def test_op_level_autograd_uses_gradient_eps():

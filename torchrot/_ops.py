@@ -28,11 +28,11 @@ from torchrot.reference import fit_rotation_backward_reference, fit_rotation_ref
 
 _OTHER_DEVICES = ("cuda", "xpu", "mps")
 
-# The operator of plain eager calls, bound once (a lookup through torch.ops
-# costs about a microsecond a call), its direct entry (csrc/module.cpp:
+# The operator, bound once (a lookup through torch.ops costs about a
+# microsecond a call), the direct entry of plain eager calls (csrc/module.cpp:
 # without torch.ops' argument parsing; NotImplemented where torch.ops is
-# needed) and the dtypes it takes.
-_fit_rotation_autograd = torch.ops.torchrot._fit_rotation_autograd.default
+# needed) and the dtypes that entry takes.
+_fit_rotation_op = torch.ops.torchrot.fit_rotation.default
 _fit_rotation_eager = _C.fit_rotation_eager
 _EAGER_DTYPES = (torch.float32, torch.float64)
 
@@ -129,15 +129,15 @@ def fit_rotation(
     compiling = torch.compiler.is_compiling()
     _check_call(M, init, max_iter, variant, gradient_eps, out, compiling)
     if out is None and _plain_eager(M, compiling):
-        # The common call, in training or not: one C++ operator that runs the
-        # kernel and, where M requires grad, records the reverse-mode
-        # derivative (csrc/autograd.cpp), instead of the operator's Python
-        # Autograd kernel or a Python context manager, which cost several times a
-        # small fit. Tested first, with the fewest Python operations: a small
-        # batch's fit costs about as much as them.
+        # The common call, in training or not: the operator, entered from C++,
+        # whose C++ Autograd kernel runs the kernel and, where M requires grad,
+        # records the reverse-mode derivative (csrc/autograd.cpp), without
+        # Python autograd machinery or a Python context manager, which cost
+        # several times a small fit. Tested first, with the fewest Python
+        # operations: a small batch's fit costs about as much as them.
         R = _fit_rotation_eager(M, init, max_iter, variant, gradient_eps)
         if R is NotImplemented:  # a tensor subclass, a torch function mode, ...: through torch.ops
-            R = _fit_rotation_autograd(M, init, max_iter, variant, gradient_eps)
+            R = _fit_rotation_op(M, init, max_iter, variant, gradient_eps)
         return R
     differentiable = _needs_derivative(M)
     if out is not None:
@@ -149,18 +149,19 @@ def fit_rotation(
         torch.ops.torchrot.fit_rotation_out(M, init, max_iter, variant, out)
         return out
     if differentiable or compiling:
-        # The operator's Autograd kernel (torchrot/_autograd.py) records the
+        # The operator's Autograd kernel (csrc/autograd.cpp, handing torch.func,
+        # forward AD and tracing to torchrot/_autograd.py) records the
         # derivatives in every mode (backward, forward AD, each torch.func
         # level), in eager and where torch.compile traces it, so both run the
         # same path. (Not FitRotationFunction.apply: dynamo cannot trace an
         # autograd.Function with a custom jvp, and apply costs twice as much.)
         # Under torch.autocast the operator's autocast kernel casts to float32.
-        return torch.ops.torchrot.fit_rotation.default(M, init, max_iter, variant, gradient_eps)
+        return _fit_rotation_op(M, init, max_iter, variant, gradient_eps)
     # Nothing to differentiate: below the operator's Autograd kernel, which
     # hands every call under a torch.func transform (vmap, say) to its Python
     # kernel (csrc/autograd.cpp), more than the cost of a small fit.
     with torch._C._AutoDispatchBelowAutograd():
-        return torch.ops.torchrot.fit_rotation.default(M, init, max_iter, variant, gradient_eps)
+        return _fit_rotation_op(M, init, max_iter, variant, gradient_eps)
 
 
 def _check_call(M, init, max_iter, variant, gradient_eps, out=None, compiling: bool | None = None) -> None:
@@ -193,12 +194,13 @@ def _check_call(M, init, max_iter, variant, gradient_eps, out=None, compiling: b
 
 
 def _plain_eager(M: torch.Tensor, compiling: bool) -> bool:
-    """Whether a call can run as torchrot::_fit_rotation_autograd: eager
-    (not ``compiling``), on a plain float32/float64 tensor, with no torch.func
-    level and no forward AD (autocast casts reduced precision, and the other
-    modes record their derivatives in the operator's Python Autograd kernel).
-    A derivative, if any, is then a reverse-mode one in M, which that
-    operator records where M requires grad (none flows to init)."""
+    """Whether a call can enter the operator from C++ (_fit_rotation_eager):
+    eager (not ``compiling``), on a plain float32/float64 tensor, with no
+    torch.func level and no forward AD (autocast casts reduced precision, and
+    the other modes record their derivatives in the operator's Python
+    Autograd kernel). A derivative, if any, is then a reverse-mode one in M,
+    which the operator's C++ Autograd kernel records where M requires grad
+    (none flows to init)."""
     return (
         type(M) is torch.Tensor
         and not compiling
