@@ -506,24 +506,32 @@ def test_operator_calls_run_no_python_unless_a_transform_or_tangent_needs_it():
 
 
 def test_eager_entry_leaves_subclasses_and_modes_to_torch_ops():
-    """The plain eager call's direct entry (torchrot._C.fit_rotation_eager)
-    declines, before doing anything, what torch.ops handles: a tensor
-    subclass's __torch_function__, an active torch function mode, max_iter
-    beyond int64. fit_rotation then calls the operator through torch.ops: the
-    mode sees that call and the subclass survives; the results are the same."""
+    """The plain eager call's direct entry (torchrot._C.fit_rotation_eager,
+    with out= too) declines, before doing anything, what torch.ops handles: a
+    tensor subclass's __torch_function__, an active torch function mode,
+    max_iter beyond int64. fit_rotation then calls the operator through
+    torch.ops: the mode sees that call and the subclass survives; the results
+    are the same, and out= returns out itself."""
     M, init = make_warm_start("warm", 7, seed=8, dtype=torch.float32)
     expected = op.fit_rotation(M, init, None, "conservative", GRADIENT_EPS)
     entry = torchrot._C.fit_rotation_eager
-    assert torch.equal(entry(M, init, None, "conservative", GRADIENT_EPS), expected)
+    args = (None, "conservative", GRADIENT_EPS)
+    assert torch.equal(entry(M, init, *args, None), expected)
+    out = torch.empty_like(M)
+    assert entry(M, init, *args, out) is out and torch.equal(out, expected)
 
     class Sub(torch.Tensor):
         pass
 
-    assert entry(M.as_subclass(Sub), init, None, "conservative", GRADIENT_EPS) is NotImplemented
-    assert entry(M, init.as_subclass(Sub), None, "conservative", GRADIENT_EPS) is NotImplemented
-    assert entry(M, init, 2**63, "conservative", GRADIENT_EPS) is NotImplemented
+    declined = [(M.as_subclass(Sub), init, *args, None), (M, init.as_subclass(Sub), *args, None),
+                (M, init, 2**63, "conservative", GRADIENT_EPS, None), (M, init, *args, out.as_subclass(Sub))]
+    for call in declined:
+        assert entry(*call) is NotImplemented
     R = torchrot.fit_rotation(M.as_subclass(Sub), init)
     assert type(R) is Sub and torch.equal(R.as_subclass(torch.Tensor), expected)
+    out_sub = torch.zeros_like(M).as_subclass(Sub)
+    assert torchrot.fit_rotation(M, init, out=out_sub) is out_sub and torch.equal(out_sub.as_subclass(torch.Tensor),
+                                                                                  expected)
 
     class Recorder(torch.overrides.TorchFunctionMode):
         def __init__(self):
@@ -534,10 +542,14 @@ def test_eager_entry_leaves_subclasses_and_modes_to_torch_ops():
             self.calls.append(func)
             return func(*args, **(kwargs or {}))
 
+    out = torch.zeros_like(M)
     with Recorder() as mode:
-        assert entry(M, init, None, "conservative", GRADIENT_EPS) is NotImplemented
+        assert entry(M, init, *args, None) is NotImplemented
+        assert entry(M, init, *args, out) is NotImplemented
         R = torchrot.fit_rotation(M, init)
-    assert op.fit_rotation.default in mode.calls and torch.equal(R, expected)
+        assert torchrot.fit_rotation(M, init, out=out) is out
+    assert op.fit_rotation.default in mode.calls and op.fit_rotation_out.default in mode.calls
+    assert torch.equal(R, expected) and torch.equal(out, expected)
 
 
 def test_op_level_autograd_uses_gradient_eps():

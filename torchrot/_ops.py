@@ -28,11 +28,12 @@ from torchrot.reference import fit_rotation_backward_reference, fit_rotation_ref
 
 _OTHER_DEVICES = ("cuda", "xpu", "mps")
 
-# The operator, bound once (a lookup through torch.ops costs about a
+# The operators, bound once (a lookup through torch.ops costs about a
 # microsecond a call), the direct entry of plain eager calls (csrc/module.cpp:
 # without torch.ops' argument parsing; NotImplemented where torch.ops is
 # needed) and the dtypes that entry takes.
 _fit_rotation_op = torch.ops.torchrot.fit_rotation.default
+_fit_rotation_out_op = torch.ops.torchrot.fit_rotation_out.default
 _fit_rotation_eager = _C.fit_rotation_eager
 _EAGER_DTYPES = (torch.float32, torch.float64)
 
@@ -128,14 +129,15 @@ def fit_rotation(
     """
     compiling = torch.compiler.is_compiling()
     _check_call(M, init, max_iter, variant, gradient_eps, out, compiling)
-    if out is None and _plain_eager(M, compiling):
+    plain = _plain_eager(M, compiling)
+    if out is None and plain:
         # The common call, in training or not: the operator, entered from C++,
         # whose C++ Autograd kernel runs the kernel and, where M requires grad,
         # records the reverse-mode derivative (csrc/autograd.cpp), without
         # Python autograd machinery or a Python context manager, which cost
         # several times a small fit. Tested first, with the fewest Python
         # operations: a small batch's fit costs about as much as them.
-        R = _fit_rotation_eager(M, init, max_iter, variant, gradient_eps)
+        R = _fit_rotation_eager(M, init, max_iter, variant, gradient_eps, None)
         if R is NotImplemented:  # a tensor subclass, a torch function mode, ...: through torch.ops
             R = _fit_rotation_op(M, init, max_iter, variant, gradient_eps)
         return R
@@ -146,7 +148,9 @@ def fit_rotation(
                 "torchrot.fit_rotation: out= does not support automatic differentiation "
                 "(M requires grad); call it without out"
             )
-        torch.ops.torchrot.fit_rotation_out(M, init, max_iter, variant, out)
+        # The plain call, from C++ as above; through torch.ops where that declines.
+        if not plain or _fit_rotation_eager(M, init, max_iter, variant, gradient_eps, out) is NotImplemented:
+            _fit_rotation_out_op(M, init, max_iter, variant, out)
         return out
     if differentiable or compiling:
         # The operator's Autograd kernel (csrc/autograd.cpp, handing torch.func,
