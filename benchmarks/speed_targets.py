@@ -138,10 +138,10 @@ def main() -> None:
           f"({one_step_failures / n:.2%}), converged {converged_failures}")
 
     U = make_matrices("uniform", 100_000, 0, torch.float32)
-    cold = micro.interleaved_median_seconds({SVD: lambda: torchrot.rotation_svd(U), COLD: lambda: torchrot.fit_rotation(U),
-                                             COLD_1: lambda: torchrot.fit_rotation(U, max_iter=1),
-                                             COLD_2: lambda: torchrot.fit_rotation(U, max_iter=2)},
-                                            args.rounds, args.min_time)
+    cold_calls = {SVD: lambda: torchrot.rotation_svd(U), COLD: lambda: torchrot.fit_rotation(U),
+                  COLD_1: lambda: torchrot.fit_rotation(U, max_iter=1),
+                  COLD_2: lambda: torchrot.fit_rotation(U, max_iter=2)}
+    cold = micro.interleaved_median_seconds(cold_calls, args.rounds, args.min_time)
     cold_ns = {k: v / U.shape[0] * 1e9 for k, v in cold.items()}
     print(f"\nuniform [0, 1], N = 100,000, converged cold: torchrot {cold_ns[COLD]:.1f} ns/matrix, "
           f"torch.linalg.svd {cold_ns[SVD]:.1f}: {cold[SVD] / cold[COLD]:.1f}x")

@@ -385,9 +385,11 @@ at::Tensor fit_rotation_backward_cpu_op(const at::Tensor& grad, const at::Tensor
 #define TORCHROT_GRADIENT_EPS_ARG "float gradient_eps=" TORCHROT_STRINGIFY(TORCHROT_DEFAULT_GRADIENT_EPS)
 // The arguments and results of fit_rotation and fit_rotation_backward, each
 // shared with its Python Autograd twin below.
-#define TORCHROT_FIT_ROTATION_SCHEMA \
-  "(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\", " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor"
-#define TORCHROT_FIT_ROTATION_BACKWARD_SCHEMA "(Tensor grad, Tensor R, Tensor M, " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor"
+#define TORCHROT_FIT_ROTATION_SCHEMA                                                  \
+  "(Tensor M, Tensor? init=None, int? max_iter=None, str variant=\"conservative\", " \
+  TORCHROT_GRADIENT_EPS_ARG ") -> Tensor"
+#define TORCHROT_FIT_ROTATION_BACKWARD_SCHEMA \
+  "(Tensor grad, Tensor R, Tensor M, " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor"
 
 TORCH_LIBRARY(torchrot, m) {
   // gradient_eps only affects the derivative (see fit_rotation_backward).
