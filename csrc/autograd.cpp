@@ -23,7 +23,6 @@
 #pragma GCC diagnostic ignored "-Wc++20-extensions"
 #endif
 #include <ATen/ATen.h>
-#include <ATen/core/dispatch/Dispatcher.h>
 #include <c10/core/AutogradState.h>
 #include <c10/core/impl/LocalDispatchKeySet.h>
 #include <torch/csrc/autograd/custom_function.h>
@@ -32,18 +31,13 @@
 
 #include <optional>
 
-#include "fit_rotation.h"
+#include "operators.h"
 
 namespace torchrot {
 namespace {
 
 using torch::autograd::AutogradContext;
 using torch::autograd::variable_list;
-
-template <class Signature>
-c10::TypedOperatorHandle<Signature> find_operator(const char* name) {
-  return c10::Dispatcher::singleton().findSchemaOrThrow(name, "").typed<Signature>();
-}
 
 const c10::TypedOperatorHandle<FitRotationSignature>& fit_rotation_op() {
   static const auto op = find_operator<FitRotationSignature>("torchrot::fit_rotation");

@@ -10,16 +10,6 @@
 
 namespace torchrot {
 
-// The C++ signatures of the schemas torchrot::fit_rotation (M, init,
-// max_iter, variant, gradient_eps), torchrot::fit_rotation_backward (grad,
-// R, M, gradient_eps) and torchrot::fit_rotation_out (M, init, max_iter,
-// variant, out), for typed dispatcher calls.
-using FitRotationSignature = at::Tensor(const at::Tensor&, const std::optional<at::Tensor>&, std::optional<int64_t>,
-                                        c10::string_view, double);
-using FitRotationBackwardSignature = at::Tensor(const at::Tensor&, const at::Tensor&, const at::Tensor&, double);
-using FitRotationOutSignature = void(const at::Tensor&, const std::optional<at::Tensor>&, std::optional<int64_t>,
-                                     c10::string_view, const at::Tensor&);
-
 // How the Cayley step estimates the maximal objective c (paper, Sec. 4.2).
 enum class Variant : int8_t {
   kNewton = 0,        // c = tr S: the plain Newton step (Eq. 21, [KKB18]).

@@ -11,7 +11,6 @@
 #pragma GCC diagnostic ignored "-Wc++20-extensions"
 #endif
 #include <ATen/PythonTorchFunctionTLS.h>
-#include <ATen/core/dispatch/Dispatcher.h>
 #include <torch/csrc/Exceptions.h>
 #include <torch/csrc/autograd/python_variable.h>
 #include <pybind11/pybind11.h>
@@ -20,9 +19,8 @@
 #include <cstdint>
 #include <optional>
 
-#include "fit_rotation.h"
-
 #include "limits.h"
+#include "operators.h"
 
 namespace {
 
@@ -96,9 +94,7 @@ PyObject* fit_rotation_eager(PyObject*, PyObject* const* args, Py_ssize_t nargs)
   std::optional<at::Tensor> init;
   if (args[1] != Py_None) init = THPVariable_Unpack(args[1]);
   if (args[5] != Py_None) {
-    static auto op = c10::Dispatcher::singleton()
-                         .findSchemaOrThrow("torchrot::fit_rotation_out", "")
-                         .typed<torchrot::FitRotationOutSignature>();
+    static const auto op = torchrot::find_operator<torchrot::FitRotationOutSignature>("torchrot::fit_rotation_out");
     const at::Tensor out = THPVariable_Unpack(args[5]);
     {
       pybind11::gil_scoped_release no_gil;
@@ -107,9 +103,7 @@ PyObject* fit_rotation_eager(PyObject*, PyObject* const* args, Py_ssize_t nargs)
     Py_INCREF(args[5]);
     return args[5];
   }
-  static auto op = c10::Dispatcher::singleton()
-                       .findSchemaOrThrow("torchrot::fit_rotation", "")
-                       .typed<torchrot::FitRotationSignature>();
+  static const auto op = torchrot::find_operator<torchrot::FitRotationSignature>("torchrot::fit_rotation");
   at::Tensor R;
   {
     pybind11::gil_scoped_release no_gil;
