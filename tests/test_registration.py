@@ -3,54 +3,19 @@ float64 SVD/Umeyama reference, weights, broadcasting, dtypes, errors, and (once
 fit_rotation has autograd) gradients."""
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
 import torchrot
-from torchrot.testing import random_rotations
+from torchrot.reference import rigid_registration_svd
+from torchrot.testing import registration_problem
 
 TOL = {torch.float32: 2e-5, torch.float64: 1e-11}
 
 
 def umeyama_reference(x, y, weights=None, scale=False):
-    """Independent float64 reference: Umeyama (1991) by SVD of the weighted
-    cross-covariance Sigma = sum p_i (y_i - my)(x_i - mx)^T. Shapes as
-    rigid_registration; returns (R, t, s) in float64. Differentiable by autograd."""
-    x, y = x.double(), y.double()
-    if weights is None:
-        weights = torch.ones(x.shape[:-1], dtype=torch.float64)
-    p = weights.double() / weights.double().sum(-1, keepdim=True)
-    mx = (p.unsqueeze(-1) * x).sum(-2)
-    my = (p.unsqueeze(-1) * y).sum(-2)
-    xc, yc = x - mx.unsqueeze(-2), y - my.unsqueeze(-2)
-    sigma = torch.einsum("...n,...ni,...nj->...ij", p, yc, xc)
-    U, S, Vh = torch.linalg.svd(sigma)
-    d = torch.sign(torch.linalg.det(U @ Vh))
-    ones = torch.ones_like(d)
-    D = torch.stack([ones, ones, d], -1)
-    R = U @ torch.diag_embed(D) @ Vh
-    if scale:
-        s = (S * D).sum(-1) / (p * xc.square().sum(-1)).sum(-1)
-    else:
-        s = torch.ones_like(d)
-    t = my - s.unsqueeze(-1) * (R @ mx.unsqueeze(-1)).squeeze(-1)
-    return R, t, s
-
-
-def make_problem(batch=(), n=40, seed=0, noise=0.0, dtype=torch.float64, with_scale=True):
-    """Points x, the true (R, t, s) and y = s R x + t (+ Gaussian noise)."""
-    gen = torch.Generator().manual_seed(seed)
-    count = math.prod(batch)
-    R = random_rotations(count, gen).reshape(*batch, 3, 3)
-    t = torch.randn(*batch, 3, generator=gen, dtype=torch.float64) * 3
-    s = (torch.rand(batch, generator=gen, dtype=torch.float64) * 2 + 0.5) if with_scale \
-        else torch.ones(batch, dtype=torch.float64)
-    x = torch.randn(*batch, n, 3, generator=gen, dtype=torch.float64) * torch.tensor([3.0, 2.0, 1.0]) + 1.0
-    y = s[..., None, None] * (x @ R.mT) + t.unsqueeze(-2)
-    y = y + noise * torch.randn(y.shape, generator=gen, dtype=torch.float64)
-    return x.to(dtype), y.to(dtype), (R, t, s)
+    """Independent float64 reference: Umeyama by SVD (torchrot.rigid_registration_svd)."""
+    return rigid_registration_svd(x.double(), y.double(), None if weights is None else weights.double(), scale)
 
 
 def assert_close(actual, expected, tol, what):
@@ -65,7 +30,7 @@ def assert_close(actual, expected, tol, what):
 
 @pytest.mark.parametrize("scale", [False, True])
 def test_recovers_known_transform_noiseless(dtype, scale):
-    x, y, (R, t, s) = make_problem((6,), seed=1, dtype=dtype, with_scale=scale)
+    x, y, (R, t, s) = registration_problem((6,), seed=1, dtype=dtype, with_scale=scale)
     out = torchrot.rigid_registration(x, y, scale=scale)
     assert isinstance(out, torchrot.RigidTransform)
     assert out.R.shape == (6, 3, 3) and out.t.shape == (6, 3) and out.s.shape == (6,)
@@ -80,7 +45,7 @@ def test_recovers_known_transform_noiseless(dtype, scale):
 
 @pytest.mark.parametrize("scale", [False, True])
 def test_matches_umeyama_reference_on_noisy_data(dtype, scale):
-    x, y, _ = make_problem((20,), n=25, seed=2, noise=0.5, dtype=dtype)
+    x, y, _ = registration_problem((20,), n=25, seed=2, noise=0.5, dtype=dtype)
     weights = torch.rand(20, 25, generator=torch.Generator().manual_seed(3), dtype=dtype) + 0.1
     out = torchrot.rigid_registration(x, y, weights, scale=scale)
     R, t, s = umeyama_reference(x, y, weights, scale)
@@ -95,7 +60,7 @@ def test_points_far_from_the_origin_lose_no_accuracy(dtype, scale):
     """The covariance is of centred points: far from the origin, R and s are as
     accurate as near it (sum p y x^T - ȳ x̄^T would cancel ~|offset|^2 / spread^2
     of the digits: R off by ~0.3 in float32 here)."""
-    x, y, _ = make_problem((50,), n=40, seed=5, noise=0.1, dtype=torch.float64, with_scale=scale)
+    x, y, _ = registration_problem((50,), n=40, seed=5, noise=0.1, dtype=torch.float64, with_scale=scale)
     offset = torch.tensor([1e3, -2e3, 5e2], dtype=torch.float64)
     x, y = (x + offset).to(dtype), (y - 2 * offset).to(dtype)
     out = torchrot.rigid_registration(x, y, scale=scale)
@@ -108,7 +73,7 @@ def test_points_far_from_the_origin_lose_no_accuracy(dtype, scale):
 
 def test_result_minimises_the_weighted_cost():
     """The returned (R, t, s) beats nearby perturbations of itself."""
-    x, y, _ = make_problem((), n=30, seed=4, noise=1.0)
+    x, y, _ = registration_problem((), n=30, seed=4, noise=1.0)
     w = torch.rand(30, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
 
     def cost(R, t, s):
@@ -127,7 +92,7 @@ def test_result_minimises_the_weighted_cost():
 
 def test_reflection_data_gives_a_rotation():
     """y a mirror image of x: the best *rotation* (det +1), as Umeyama's reference."""
-    x, _, _ = make_problem((), n=30, seed=7)
+    x, _, _ = registration_problem((), n=30, seed=7)
     y = x * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)
     out = torchrot.rigid_registration(x, y, scale=True)
     R, t, s = umeyama_reference(x, y, scale=True)
@@ -143,7 +108,7 @@ def test_reflection_data_gives_a_rotation():
 
 
 def test_zero_weights_drop_points(dtype):
-    x, y, (R, t, s) = make_problem((), n=20, seed=8, dtype=dtype)
+    x, y, (R, t, s) = registration_problem((), n=20, seed=8, dtype=dtype)
     # wreck some points and give them zero weight
     y_bad = y.clone()
     y_bad[::3] += 100.0
@@ -159,7 +124,7 @@ def test_zero_weights_drop_points(dtype):
 
 def test_weights_are_not_squared_and_scale_free():
     """Weight 2 on a point == the point listed twice; w and 10 w agree."""
-    x, y, _ = make_problem((), n=12, seed=9, noise=0.3)
+    x, y, _ = registration_problem((), n=12, seed=9, noise=0.3)
     w = torch.ones(12, dtype=torch.float64)
     w[0] = 2.0
     doubled = torchrot.rigid_registration(torch.cat([x, x[:1]]), torch.cat([y, y[:1]]), scale=True)
@@ -171,7 +136,7 @@ def test_weights_are_not_squared_and_scale_free():
 
 
 def test_exactly_three_points():
-    x, y, (R, t, s) = make_problem((), n=3, seed=10)
+    x, y, (R, t, s) = registration_problem((), n=3, seed=10)
     out = torchrot.rigid_registration(x, y, scale=True)
     assert_close(out.R, R, 1e-10, "R")
     assert_close(out.s, s, 1e-10, "s")
@@ -209,7 +174,7 @@ def test_empty_batch():
 
 
 def test_non_contiguous_inputs_and_no_input_modification():
-    x, y, _ = make_problem((4,), n=16, seed=12, noise=0.1)
+    x, y, _ = registration_problem((4,), n=16, seed=12, noise=0.1)
     xt = x.transpose(-1, -2).contiguous().transpose(-1, -2)  # same values, other strides
     w = torch.rand(16, 4, dtype=torch.float64).T + 0.1
     copies = [t.clone() for t in (xt, y, w)]
@@ -223,7 +188,7 @@ def test_non_contiguous_inputs_and_no_input_modification():
 
 @pytest.mark.parametrize("low", [torch.float16, torch.bfloat16], ids=str)
 def test_half_precision_is_computed_in_float32(low):
-    x, y, (R, _, _) = make_problem((3,), n=20, seed=13, with_scale=False)
+    x, y, (R, _, _) = registration_problem((3,), n=20, seed=13, with_scale=False)
     out = torchrot.rigid_registration(x.to(low), y.to(low))
     assert out.R.dtype == out.t.dtype == out.s.dtype == low
     ref = torchrot.rigid_registration(x.to(low).float(), y.to(low).float())
@@ -234,7 +199,7 @@ def test_half_precision_is_computed_in_float32(low):
 
 
 def test_autocast_keeps_float32():
-    x, y, _ = make_problem((5,), n=20, seed=14, noise=0.2, dtype=torch.float32)
+    x, y, _ = registration_problem((5,), n=20, seed=14, noise=0.2, dtype=torch.float32)
     plain = torchrot.rigid_registration(x, y, scale=True)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         auto = torchrot.rigid_registration(x, y, scale=True)
@@ -244,7 +209,7 @@ def test_autocast_keeps_float32():
 
 
 def test_init_is_forwarded_as_warm_start(monkeypatch):
-    x, y, (R, _, _) = make_problem((8,), n=20, seed=15, with_scale=False)
+    x, y, (R, _, _) = registration_problem((8,), n=20, seed=15, with_scale=False)
     cold = torchrot.rigid_registration(x, y)
     seen = []
     fit = torchrot.fit_rotation
@@ -266,7 +231,7 @@ def test_init_is_forwarded_as_warm_start(monkeypatch):
 
 
 def test_compiles_fullgraph():
-    x, y, _ = make_problem((4,), n=10, seed=16, noise=0.1)
+    x, y, _ = registration_problem((4,), n=10, seed=16, noise=0.1)
     w = torch.rand(4, 10, dtype=torch.float64) + 0.1
     compiled = torch.compile(torchrot.rigid_registration, backend="aot_eager", fullgraph=True)
     out = compiled(x, y, w, scale=True)
@@ -318,7 +283,7 @@ def test_errors_name_the_function():
 
 
 def test_nan_stays_in_its_problem():
-    x, y, (R, _, _) = make_problem((3,), n=10, seed=17, with_scale=False)
+    x, y, (R, _, _) = registration_problem((3,), n=10, seed=17, with_scale=False)
     y = y.clone()
     y[1, 4, 0] = float("nan")
     out = torchrot.rigid_registration(x, y)
@@ -333,7 +298,7 @@ def test_nan_stays_in_its_problem():
 
 @pytest.mark.parametrize("scale", [False, True])
 def test_gradcheck(scale):
-    x, y, _ = make_problem((2,), n=6, seed=18, noise=0.3)
+    x, y, _ = registration_problem((2,), n=6, seed=18, noise=0.3)
     w = torch.rand(2, 6, generator=torch.Generator().manual_seed(19), dtype=torch.float64) + 0.5
     inputs = tuple(t.clone().requires_grad_() for t in (x, y, w))
 
@@ -345,7 +310,7 @@ def test_gradcheck(scale):
 
 @pytest.mark.parametrize("scale", [False, True])
 def test_gradients_match_svd_reference(scale):
-    x, y, _ = make_problem((16,), n=20, seed=20, noise=0.5)
+    x, y, _ = registration_problem((16,), n=20, seed=20, noise=0.5)
     w = torch.rand(16, 20, generator=torch.Generator().manual_seed(21), dtype=torch.float64) + 0.1
     gen = torch.Generator().manual_seed(22)
     probes = [torch.randn(16, *shape, generator=gen, dtype=torch.float64) for shape in ((3, 3), (3,), ())]
@@ -366,7 +331,7 @@ def test_gradients_match_svd_reference(scale):
 def test_torch_func_vmap_and_grad():
     """vmap over problems equals the batched call; func.grad equals autograd
     (the value checks are skipped inside the transforms)."""
-    x, y, _ = make_problem((4,), n=10, seed=23, noise=0.3)
+    x, y, _ = registration_problem((4,), n=10, seed=23, noise=0.3)
     w = torch.rand(4, 10, generator=torch.Generator().manual_seed(24), dtype=torch.float64) + 0.1
 
     def fn(x, y, w):

@@ -40,6 +40,39 @@ def rotation_svd(M: torch.Tensor) -> torch.Tensor:
     return (U * D.unsqueeze(-2)) @ Vh
 
 
+def rigid_registration_svd(x: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None,
+                           scale: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Umeyama's closed form (IEEE TPAMI 1991) by SVD, written plainly: the
+    reference for :func:`torchrot.rigid_registration` and its baseline in
+    ``benchmarks/registration.py``. Differentiable by autograd (through the SVD).
+
+    Args:
+        x, y: ``(..., N, 3)`` source and target points (column vectors: y ~ s R x + t).
+        weights: optional ``(..., N)`` non-negative weights; None: all ones.
+        scale: also fit Umeyama's scale s; False: s = 1.
+    Returns:
+        ``(R, t, s)``: ``(..., 3, 3)``, ``(..., 3)`` and ``(...)``, in the inputs'
+        dtype (pass float64 for a reference answer). No argument checks.
+    """
+    if weights is None:
+        weights = torch.ones(x.shape[:-1], dtype=x.dtype, device=x.device)
+    p = weights / weights.sum(-1, keepdim=True)
+    x_mean = (p.unsqueeze(-1) * x).sum(-2)
+    y_mean = (p.unsqueeze(-1) * y).sum(-2)
+    xc, yc = x - x_mean.unsqueeze(-2), y - y_mean.unsqueeze(-2)
+    M = torch.einsum("...n,...ni,...nj->...ij", p, yc, xc)
+    U, S, Vh = torch.linalg.svd(M)
+    d = torch.linalg.det(U @ Vh)
+    D = torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1)
+    R = (U * D.unsqueeze(-2)) @ Vh
+    if scale:
+        s = (S * D).sum(-1) / (p * xc.square().sum(-1)).sum(-1)
+    else:
+        s = torch.ones_like(d)
+    t = y_mean - s.unsqueeze(-1) * (R @ x_mean.unsqueeze(-1)).squeeze(-1)
+    return R, t, s
+
+
 def _skew_vector(S: torch.Tensor) -> torch.Tensor:
     """m = vee(S - S^T) = (S21 - S12, S02 - S20, S10 - S01) (paper Eq. 12)."""
     return torch.stack(

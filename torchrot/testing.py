@@ -130,6 +130,24 @@ def random_rotations(
     return cayley_rotation(axis * torch.tan(angle / 2).unsqueeze(-1))
 
 
+def registration_problem(batch: tuple[int, ...] = (), n: int = 40, seed: int = 0, noise: float = 0.0,
+                         dtype: torch.dtype = torch.float64, with_scale: bool = True):
+    """Points ``x`` ``(*batch, n, 3)``, a known transform ``(R, t, s)`` (float64;
+    s = 1 unless with_scale) and ``y = s R x + t``, plus Gaussian noise of
+    standard deviation ``noise``; x and y are cast to ``dtype``. x is spread
+    anisotropically (3, 2, 1) around (1, 1, 1). Returns ``(x, y, (R, t, s))``."""
+    gen = torch.Generator().manual_seed(seed)
+    count = math.prod(batch)
+    R = random_rotations(count, gen).reshape(*batch, 3, 3)
+    t = torch.randn(*batch, 3, generator=gen, dtype=torch.float64) * 3
+    s = (torch.rand(batch, generator=gen, dtype=torch.float64) * 2 + 0.5) if with_scale \
+        else torch.ones(batch, dtype=torch.float64)
+    x = torch.randn(*batch, n, 3, generator=gen, dtype=torch.float64) * torch.tensor([3.0, 2.0, 1.0]) + 1.0
+    y = s[..., None, None] * (x @ R.mT) + t.unsqueeze(-2)
+    y = y + noise * torch.randn(y.shape, generator=gen, dtype=torch.float64)
+    return x.to(dtype), y.to(dtype), (R, t, s)
+
+
 def random_spd(n: int, gen: torch.Generator, cond: float) -> torch.Tensor:
     """``(n, 3, 3)`` symmetric positive definite stretches with condition number
     ``cond``: eigenvalues 1, cond and one log-uniform between, random eigenbasis."""
