@@ -61,14 +61,12 @@ def rigid_registration_svd(x: torch.Tensor, y: torch.Tensor, weights: torch.Tens
     y_mean = (p.unsqueeze(-1) * y).sum(-2)
     xc, yc = x - x_mean.unsqueeze(-2), y - y_mean.unsqueeze(-2)
     M = torch.einsum("...n,...ni,...nj->...ij", p, yc, xc)
-    U, S, Vh = torch.linalg.svd(M)
-    d = torch.linalg.det(U @ Vh)
-    D = torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1)
-    R = (U * D.unsqueeze(-2)) @ Vh
+    R = rotation_svd(M)
     if scale:
-        s = (S * D).sum(-1) / (p * xc.square().sum(-1)).sum(-1)
+        # tr(R^T M): the sign-corrected sum of M's singular values.
+        s = (R * M).sum((-2, -1)) / (p * xc.square().sum(-1)).sum(-1)
     else:
-        s = torch.ones_like(d)
+        s = torch.ones(M.shape[:-2], dtype=M.dtype, device=M.device)
     t = y_mean - s.unsqueeze(-1) * (R @ x_mean.unsqueeze(-1)).squeeze(-1)
     return R, t, s
 
