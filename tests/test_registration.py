@@ -173,6 +173,14 @@ def test_empty_batch():
     assert out.R.shape == (0, 3, 3) and out.t.shape == (0, 3) and out.s.shape == (0,)
 
 
+def test_meta_tensors_give_shapes():
+    """On meta (no values, no autocast) the call runs and gives the result's shapes and dtype."""
+    x = torch.empty(5, 10, 3, dtype=torch.float32, device="meta")
+    out = torchrot.rigid_registration(x, x, torch.empty(5, 10, device="meta"), scale=True)
+    assert out.R.shape == (5, 3, 3) and out.t.shape == (5, 3) and out.s.shape == (5,)
+    assert out.R.device.type == "meta" and out.R.dtype == torch.float32
+
+
 def test_non_contiguous_inputs_and_no_input_modification():
     x, y, _ = registration_problem((4,), n=16, seed=12, noise=0.1)
     xt = x.transpose(-1, -2).contiguous().transpose(-1, -2)  # same values, other strides

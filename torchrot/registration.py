@@ -19,6 +19,7 @@ x, y and the weights wherever fit_rotation is.
 """
 from __future__ import annotations
 
+import contextlib
 from typing import NamedTuple
 
 import torch
@@ -99,8 +100,13 @@ def rigid_registration(
         _check_point_counts(x, weights)
     dtype = x.dtype
     compute = torch.float32 if dtype in _COMPUTE_IN_FLOAT32 else dtype
-    # Autocast would run the covariance products in bf16; they need the input precision.
-    with torch.autocast(x.device.type, enabled=False):
+    # Autocast would run the covariance products in bf16; they need the input
+    # precision. (Devices without autocast, such as meta, have none to turn off:
+    # torch.autocast raises for them.)
+    device_type = x.device.type
+    no_autocast = torch.autocast(device_type, enabled=False) if torch.amp.is_autocast_available(device_type) \
+        else contextlib.nullcontext()
+    with no_autocast:
         R, t, s = _solve(x.to(compute), y.to(compute), None if weights is None else weights.to(compute),
                          scale, _init_in(init, compute))
     return RigidTransform(R.to(dtype), t.to(dtype), s.to(dtype))
