@@ -63,20 +63,28 @@ def _calls() -> list:
 
 
 def test_concurrent_calls_and_thread_count_changes(restore_threads):
-    """4 Python threads run every call 6 times in different orders while the
-    main thread cycles torch.set_num_threads through 1, 2, 3: every result is
+    """4 Python threads run every call 6 times (or more, until the count has
+    cycled) in different orders while the main thread cycles
+    torch.set_num_threads through 1, 2, 3: every result is
     bit-identical to the sequential single-threaded one."""
     calls = _calls()
     torch.set_num_threads(1)
     expected = {name: fn() for name, fn in calls}
     failures, errors = [], []
 
+    switched = threading.Event()  # every thread count has been set at least once during the calls
+
     def worker(seed: int):
         order = [calls[(seed + 5 * i) % len(calls)] for i in range(6 * len(calls))]
         try:
-            for name, fn in order:
-                if not _same(fn(), expected[name]):
-                    failures.append(f"thread {seed}: {name}")
+            # Every call 6 times, then again until the main thread has cycled
+            # the thread count (fast calls could otherwise all finish first).
+            while True:
+                for name, fn in order:
+                    if not _same(fn(), expected[name]):
+                        failures.append(f"thread {seed}: {name}")
+                if switched.is_set():
+                    break
         except Exception as exc:  # surfaced in the main thread
             errors.append(f"thread {seed}: {exc!r}")
 
@@ -87,6 +95,8 @@ def test_concurrent_calls_and_thread_count_changes(restore_threads):
     while any(t.is_alive() for t in workers):
         torch.set_num_threads(1 + switches % 3)
         switches += 1
+        if switches >= 3:
+            switched.set()
         for t in workers:
             t.join(timeout=0.005)
     assert not errors, errors
