@@ -9,7 +9,7 @@ one writes it in PyTorch today) and torchrot.rigid_registration (fit_rotation
 on the same covariance). The last column is the largest |R - R*| of
 torchrot's rotations against the float64 SVD answer.
 
-    python benchmarks/registration.py [--shapes 64x64 16x1000 1024x64 1x100000] [--dtype float32 float64]
+    python benchmarks/registration.py [--shapes 1x100 64x64 16x1000 1024x64 1x100000] [--dtype float32 float64]
 """
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def run(problems: int, points: int, dtype: torch.dtype, rounds: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--shapes", nargs="+", default=["64x64", "16x1000", "1024x64", "1x100000"],
+    parser.add_argument("--shapes", nargs="+", default=["1x100", "64x64", "16x1000", "1024x64", "1x100000"],
                         help="problems x points per problem")
     parser.add_argument("--dtype", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
     parser.add_argument("--rounds", type=int, default=9)
