@@ -143,12 +143,14 @@ def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor
     y_mean = _matmul(y_rows, p.unsqueeze(-1))
     xc = x_rows - x_mean  # (..., 3, N): the centred points' coordinates
     yc = y_rows - y_mean
+    xc_weighted = xc * p_row
     # M = sum_i p_i yc_i xc_i^T: (..., 3, N) @ (..., N, 3).
-    M = _matmul(yc * p_row, xc.mT)
+    M = _matmul(yc, xc_weighted.mT)
     R = torchrot.fit_rotation(M, init)
     if scale:
-        variance_x = (p * xc.square().sum(-2)).sum(-1)
-        _check_spread(variance_x, (p * x_rows.square().sum(-2)).sum(-1))
+        variance_x = (xc_weighted * xc).sum((-2, -1))  # sum_i p_i |xc_i|^2
+        # sum_i p_i |x_i|^2 = variance_x + |x̄|^2 (without another pass over the points)
+        _check_spread(variance_x, variance_x + x_mean.square().sum((-2, -1)))
         # tr(R^T M) at the maximum: the (sign-corrected) sum of M's singular values.
         s = (R * M).sum((-2, -1)) / variance_x
     else:
