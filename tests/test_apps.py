@@ -292,6 +292,18 @@ def test_rotation_layer_rows():
     assert "| 40 |" in micro.format_layer_table(rows)
 
 
+def test_registration_rows():
+    """The registration stage: one row per dtype and shape, times and accuracy from the same run."""
+    rows = micro.registration_rows(((1, 20), (3, 10)), (torch.float32, torch.float64), rounds=1, min_run_time=0.001)
+    assert [(r["dtype"], r["problems"], r["points"]) for r in rows] == \
+        [("float32", 1, 20), ("float32", 3, 10), ("float64", 1, 20), ("float64", 3, 10)]
+    for r in rows:
+        assert r["speedup_vs_svd"] == pytest.approx(r["svd_us"] / r["torchrot_us"])
+        assert r["copy_us"] > 0
+        assert r["max_r_error"] < (1e-5 if r["dtype"] == "float32" else 1e-12)
+    assert "| 3 x 10 | float64 |" in micro.format_registration_table(rows)
+
+
 def test_report_tables_select_rows_by_field():
     def row(method, key, group, isa=None, ns=10.0, data="arap"):
         return micro.Row("apps", data, method, "float32", 100, 1, ns, isa=isa, group=group, key=key,

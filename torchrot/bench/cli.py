@@ -129,6 +129,7 @@ def bench(args: argparse.Namespace, log=print) -> int:
     rows: list = []
     overhead: dict = {}
     layer: list = []
+    registration: list = []
     if run_micro:
         def pairs(name: str, n: int, dtype: torch.dtype):
             configs = {} if apps_plan is None else {"arap": apps_plan.arap, "elasticity": apps_plan.elasticity}
@@ -144,6 +145,11 @@ def bench(args: argparse.Namespace, log=print) -> int:
         stages.append((f"rotation layer (nn.RotationFit forward + backward), batch "
                        f"{', '.join(f'{b:,}' for b in plan.layer_batches)}",
                        lambda: layer.extend(micro.rotation_layer(plan.layer_batches, plan.overhead_run_time))))
+        stages.append((f"point-set registration (rigid_registration against the SVD closed form), problems x "
+                       f"points {', '.join(f'{p:,} x {n:,}' for p, n in plan.registration_shapes)}, "
+                       f"{', '.join(str(d).removeprefix('torch.') for d in plan.dtypes)}",
+                       lambda: registration.extend(micro.registration_rows(
+                           plan.registration_shapes, plan.dtypes, plan.registration_rounds, plan.overhead_run_time))))
     apps_results: dict = {}
     apps_rows: list = []
     if run_apps:
@@ -173,11 +179,13 @@ def bench(args: argparse.Namespace, log=print) -> int:
         for name, us in overhead.items():
             log(f"  {name:58s} {us:7.2f}")
         log("\nRotation layer, forward + backward (us):\n" + micro.format_layer_table(layer))
+        log("\nPoint-set registration, rigid_registration(x, y, scale=True) (us per call):\n"
+            + micro.format_registration_table(registration))
         for part in ("scaling", "methods"):
             log(f"\n## {part}\n")
             log(micro.format_table([r for r in rows if r.part == part]))
         if output:
-            written += micro.write_results(rows, overhead, output, layer)
+            written += micro.write_results(rows, overhead, output, layer, registration)
     if run_apps:
         from torchrot.bench import apps
 

@@ -14,6 +14,9 @@ Two parts:
            torchrot at each instruction set, mode and variant, and the
            paper's comparison methods (``torchrot.methods``, group
            "paper method"), each with its failures shown, not hidden.
+Beside them, each against its SVD counterpart in the same run: the
+single-matrix call (single_matrix_overhead), a training step's rotation
+layer (rotation_layer) and point-set registration (registration_rows).
 """
 from __future__ import annotations
 
@@ -32,8 +35,8 @@ import torch.utils.benchmark as tbench
 import torchrot
 from torchrot import baselines
 from torchrot import methods as paper
-from torchrot.reference import rotation_svd
-from torchrot.testing import cpu_kernel, make_matrices, make_warm_start, soa_view
+from torchrot.reference import rigid_registration_svd, rotation_svd
+from torchrot.testing import cpu_kernel, make_matrices, make_warm_start, registration_problem, soa_view
 
 Tensor = torch.Tensor
 ISAS = ("scalar", "default", "avx2", "avx512")
@@ -407,6 +410,9 @@ class Plan:
     layer_batches: tuple[int, ...] = (64, 10_000)  # rotation_layer: nn.RotationFit forward + backward
     slow_repeats: int | None = 1  # timed runs of the comparison methods (up to seconds per call; None: repeats)
     overhead_run_time: float = 0.05  # min_run_time of the single-matrix call timings
+    # registration_rows: rigid_registration against the SVD closed form, (problems, points)
+    registration_shapes: tuple[tuple[int, int], ...] = ((1, 100), (64, 64), (1024, 64))
+    registration_rounds: int = 5
 
 
 #: The default ``python -m torchrot bench``: every part at small sizes (well under 2 minutes with
@@ -414,7 +420,8 @@ class Plan:
 QUICK = Plan()
 FULL = Plan(scaling_n=(1_000, 10_000, 100_000, 1_000_000, 10_000_000), methods_n=1_000_000,
             dtypes=(torch.float32, torch.float64), all_isas=True, variants=VARIANTS, repeats=5, min_run_time=0.2,
-            comparison_n=COMPARISON_N, slow_repeats=None, overhead_run_time=0.5, layer_batches=(64, 100_000))
+            comparison_n=COMPARISON_N, slow_repeats=None, overhead_run_time=0.5, layer_batches=(64, 100_000),
+            registration_shapes=((1, 100), (64, 64), (16, 1000), (1024, 64), (1, 100_000)), registration_rounds=9)
 
 
 def make_pairs(data: str, n: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
@@ -521,6 +528,51 @@ def format_layer_table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+# Point-set registration: torchrot.rigid_registration beside the same closed
+# form by SVD (torchrot.reference.rigid_registration_svd: Umeyama by
+# torch.linalg.svd, as one writes it in PyTorch today), scale=True, on the
+# tests' problems (torchrot.testing.registration_problem, noise 0.1), with a
+# copy_ of x and y into preallocated tensors (the floor of reading the points
+# once), timed in interleaved rounds at the caller's thread count; each row
+# also gives torchrot's largest |R - R*| against the float64 SVD answer.
+
+def registration_row(problems: int, points: int, dtype: torch.dtype, rounds: int,
+                     min_run_time: float = 0.05) -> dict:
+    """One row: us per call of each method (median of ``rounds`` interleaved
+    rounds) and torchrot's largest rotation error against float64 SVD."""
+    x, y, _ = registration_problem((problems,), n=points, seed=0, noise=0.1, dtype=dtype)
+    x_copy, y_copy = torch.empty_like(x), torch.empty_like(y)
+    calls = {
+        "copy_": lambda: (x_copy.copy_(x), y_copy.copy_(y)),
+        "svd": lambda: rigid_registration_svd(x, y, scale=True),
+        "torchrot": lambda: torchrot.rigid_registration(x, y, scale=True),
+    }
+    for call in calls.values():  # warm-up
+        call()
+    us = {name: s * 1e6 for name, s in interleaved_median_seconds(calls, rounds, min_run_time).items()}
+    reference, _, _ = rigid_registration_svd(x.double(), y.double(), scale=True)
+    error = (torchrot.rigid_registration(x, y, scale=True).R.double() - reference).abs().max().item()
+    return {"problems": problems, "points": points, "dtype": str(dtype).removeprefix("torch."),
+            "copy_us": us["copy_"], "svd_us": us["svd"], "torchrot_us": us["torchrot"],
+            "speedup_vs_svd": us["svd"] / us["torchrot"], "max_r_error": error}
+
+
+def registration_rows(shapes, dtypes=(torch.float32,), rounds: int = 5, min_run_time: float = 0.05) -> list[dict]:
+    """:func:`registration_row` for every dtype and (problems, points) shape
+    (the main job's: ``Plan.registration_shapes``)."""
+    return [registration_row(problems, points, dtype, rounds, min_run_time)
+            for dtype in dtypes for problems, points in shapes]
+
+
+def format_registration_table(rows: list[dict]) -> str:
+    lines = ["| problems x points | dtype | copy_ of x, y | SVD closed form | torchrot | faster than SVD | max R error |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['problems']:,} x {r['points']:,} | {r['dtype']} | {r['copy_us']:.1f} | {r['svd_us']:.1f} "
+                     f"| {r['torchrot_us']:.1f} | {r['speedup_vs_svd']:.1f}x | {r['max_r_error']:.1e} |")
+    return "\n".join(lines)
+
+
 def machine_info() -> dict:
     return {
         "torch": torch.__version__,
@@ -584,13 +636,14 @@ def plot_scaling(rows: list[Row], path: str) -> None:
     plt.close(fig)
 
 
-def write_results(rows: list[Row], overhead: dict[str, float], folder: str, layer: list[dict] | None = None) -> list[str]:
+def write_results(rows: list[Row], overhead: dict[str, float], folder: str, layer: list[dict] | None = None,
+                  registration: list[dict] | None = None) -> list[str]:
     """bench.json, bench.md and bench_scaling.png in ``folder``; returns the paths."""
     os.makedirs(folder, exist_ok=True)
     paths = [os.path.join(folder, name) for name in ("bench.json", "bench.md", "bench_scaling.png")]
     with open(paths[0], "w") as f:
         json.dump({"machine": machine_info(), "single_matrix_us": overhead, "rotation_layer": layer or [],
-                   "rows": [asdict(r) for r in rows]}, f, indent=1)
+                   "registration": registration or [], "rows": [asdict(r) for r in rows]}, f, indent=1)
     with open(paths[1], "w") as f:
         f.write(f"# torchrot benchmark\n\nMachine: {machine_info()}\n\n")
         f.write("## Single-matrix call (microseconds)\n\n")
@@ -598,6 +651,9 @@ def write_results(rows: list[Row], overhead: dict[str, float], folder: str, laye
             f.write(f"- {name}: {us:.2f}\n")
         if layer:
             f.write("\n## Rotation layer: forward + backward, float32, 1 thread\n\n" + format_layer_table(layer) + "\n")
+        if registration:
+            f.write("\n## Point-set registration: rigid_registration(x, y, scale=True), us per call, 1 thread\n\n"
+                    + format_registration_table(registration) + "\n")
         for part in ("scaling", "methods"):
             part_rows = [r for r in rows if r.part == part]
             if part_rows:
