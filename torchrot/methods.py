@@ -51,6 +51,7 @@ import math
 
 import torch
 
+from torchrot._checks import broadcast_shapes
 from torchrot.reference import horn_matrix, quaternion_rotation
 
 __all__ = ["horn", "mueller", "higham_polar", "fa3r", "kugelstadt", "rotation_to_quaternion"]
@@ -89,7 +90,7 @@ def _check_matrices(fn: str, M, init=None, max_iter=None, init_required: bool = 
             raise TypeError(f"{where}: init must have M's dtype and device ({M.dtype}, {M.device}), "
                             f"got {init.dtype}, {init.device}")
         try:
-            ok = torch.broadcast_shapes(init.shape[:-2], M.shape[:-2]) == M.shape[:-2]
+            ok = broadcast_shapes(init.shape[:-2], M.shape[:-2]) == M.shape[:-2]
         except RuntimeError:
             ok = False
         if not ok:

@@ -535,7 +535,6 @@ def format_layer_table(results: list[dict]) -> str:
 # copy_ of x and y into preallocated tensors (the floor of reading the points
 # once), timed in interleaved rounds at the caller's thread count; each row
 # also gives torchrot's largest |R - R*| against the float64 SVD answer.
-
 def registration_row(problems: int, points: int, dtype: torch.dtype, rounds: int,
                      min_run_time: float = 0.05) -> dict:
     """One row: us per call of each method (median of ``rounds`` interleaved
