@@ -171,16 +171,31 @@ bool overlaps_other_than_identity(const at::Tensor& out, const at::Tensor& input
 }
 
 // (N, 3, 3) view of a tensor with the given (possibly broadcast) geometry,
-// without creating a tensor; nullopt if the batch dimensions cannot be
-// flattened into one stride.
+// without creating a tensor: its batch dimensions flattened into one stride,
+// or else into tiles (MatrixBatch::tile), the trailing ones (as many as can
+// be) into a tile's matrices and the leading ones into the tiles, as in the
+// paper authors' (N / 8, 8, 3, 3) blocks of 8 matrices in structure of
+// arrays; nullopt if neither can be.
 std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes, at::IntArrayRef strides,
                                       int64_t n) {
-  const auto flat = at::detail::computeStride(sizes, strides, at::DimVector{n, 3, 3});
-  if (!flat.has_value()) return std::nullopt;
   MatrixBatch view;
   view.data = t.data_ptr();
-  for (int d = 0; d < 3; ++d) view.stride[d] = (*flat)[d];
-  return view;
+  if (const auto flat = at::detail::computeStride(sizes, strides, at::DimVector{n, 3, 3})) {
+    for (int d = 0; d < 3; ++d) view.stride[d] = (*flat)[d];
+    return view;
+  }
+  const int64_t batch_dims = static_cast<int64_t>(sizes.size()) - 2;
+  for (int64_t split = 1; split < batch_dims; ++split) {
+    int64_t tile = 1;
+    for (int64_t d = split; d < batch_dims; ++d) tile *= sizes[d];
+    const auto tiled = at::detail::computeStride(sizes, strides, at::DimVector{n / tile, tile, 3, 3});
+    if (!tiled.has_value()) continue;
+    view.tile = tile;
+    view.tile_stride = (*tiled)[0];
+    for (int d = 0; d < 3; ++d) view.stride[d] = (*tiled)[d + 1];
+    return view;
+  }
+  return std::nullopt;
 }
 
 // Whether `t` is in structure-of-arrays layout: dense, with its batch

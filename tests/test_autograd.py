@@ -28,6 +28,7 @@ from torchrot.testing import (
     make_warm_start,
     random_rotations,
     soa_view,
+    tiled_view,
 )
 
 op = torch.ops.torchrot
@@ -207,6 +208,10 @@ def test_every_kernel_bit_identical_to_scalar(dtype):
                     assert used == isa
                     got = op.fit_rotation_backward(g, R[:n], M[:n], GRADIENT_EPS)
                 assert torch.equal(got, expected), f"{isa}, n={n}"
+            if n % 8 == 0 and n:  # tiled (tiles of 8 in SoA): all three inputs and the result
+                with cpu_kernel(isa):
+                    got = op.fit_rotation_backward(*(tiled_view(t[:n], 8) for t in (G, R, M)), GRADIENT_EPS)
+                assert torch.equal(got.reshape(n, 3, 3), expected), f"{isa}, n={n}, tiled"
 
 
 def test_expanded_gradient_and_broadcast_M():

@@ -45,6 +45,7 @@ from torchrot.testing import (
     rounding_reference,
     rounds_like_scalar,
     soa_view,
+    tiled_view,
 )
 from torchrot.testing import cpu_kernel as forced_kernel
 
@@ -570,6 +571,60 @@ def test_tails_and_layouts(isa, dtype, layout, use_isa):
     assert not failures, f"{isa} {dtype_id(dtype)} layout={layout}: {len(failures)} failing cases\n" + "\n".join(
         failures[:5]
     )
+
+
+TILES = (2, 3, 4, 8, 16, 32)
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
+@pytest.mark.parametrize("isa", ALL_ISA_PARAMS)
+def test_tiled_layouts(isa, dtype, use_isa):
+    """Tiled inputs (torchrot.testing.tiled_view: tiles of 2 to 32 matrices in
+    structure of arrays, narrower and wider than every block, up to 70
+    matrices): fresh results, out= a tiled tensor and out=init in place are
+    the scalar kernel's on contiguous copies (rounding_reference)."""
+    pool_M, pool_init = _tail_pool(dtype)
+    reference = rounding_reference(isa)
+    failures = []
+    for tile in TILES:
+        for n in range(tile, 71, tile):
+            variant = VARIANTS[n % 3]
+            Mc, initc = pool_M[:n].contiguous(), pool_init[:n].contiguous()
+            M, init = tiled_view(Mc, tile), tiled_view(initc, tile)
+            for mode, use_init, max_iter in (("cold", False, None), ("warm-iter1", True, 1), ("warm", True, None)):
+                ref = _run_info(use_isa, reference, Mc, initc if use_init else None, max_iter, variant)
+                with use_isa(isa):
+                    got = tuple(t.reshape(ref_t.shape) for t, ref_t in
+                                zip(_info(M, init if use_init else None, max_iter, variant), ref))
+                    out = tiled_view(torch.zeros_like(Mc), tile)
+                    torchrot.fit_rotation(M, init if use_init else None, max_iter=max_iter, variant=variant, out=out)
+                    in_place = init.clone()
+                    if use_init:
+                        torchrot.fit_rotation(M, in_place, max_iter=max_iter, variant=variant, out=in_place)
+                for what, result in (("result", got), ("out=", out.reshape(n, 3, 3)),
+                                     ("out=init", in_place.reshape(n, 3, 3) if use_init else ref[0])):
+                    if not _same(result, ref if what == "result" else ref[0]):
+                        failures.append(f"tile={tile} n={n} {mode} {variant} {what}:\n" +
+                                        _describe(result, ref if what == "result" else ref[0], Mc, initc))
+    assert not failures, f"{isa} {dtype_id(dtype)}: {len(failures)} failing cases\n" + "\n".join(failures[:5])
+
+
+@pytest.mark.parametrize("tile", [8, 12])
+def test_tiled_layout_two_threads(tile, use_isa):
+    """A tiled batch larger than a parallel chunk, in 2 threads: the threads
+    split it at block boundaries, and each matrix's result is the one-thread
+    contiguous result (best kernel)."""
+    n = 6000 - 6000 % tile
+    M, init = make_warm_start("warm", n, seed=5, dtype=torch.float32)
+    expected = [torchrot.fit_rotation(M, init, max_iter=k) for k in (1, None)]
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        got = [torchrot.fit_rotation(tiled_view(M, tile), tiled_view(init, tile), max_iter=k) for k in (1, None)]
+    finally:
+        torch.set_num_threads(previous)
+    for g, e in zip(got, expected):
+        assert torch.equal(g.reshape(n, 3, 3), e)
 
 
 # ---------------------------------------------------------------------------

@@ -44,6 +44,15 @@ def soa_view(t: torch.Tensor) -> torch.Tensor:
     return t.permute(1, 2, 0).contiguous().permute(2, 0, 1)
 
 
+def tiled_view(t: torch.Tensor, tile: int) -> torch.Tensor:
+    """t's values ``(N, 3, 3)`` in a tiled layout, ``(N / tile, tile, 3, 3)``:
+    tiles of ``tile`` matrices, each in structure of arrays (a new
+    ``(N / tile, 3, 3, tile)`` tensor permuted; tile 8 is the paper authors'
+    AVX layout). The kernels load tiles at least a SIMD block wide as plain
+    vectors and narrower ones in runs. N must be a multiple of ``tile``."""
+    return t.reshape(-1, tile, 3, 3).permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
+
+
 def rotations(shape: int | tuple[int, ...], seed: int = 0, dtype: torch.dtype = torch.float64,
               max_angle: float = math.pi) -> torch.Tensor:
     """``(*shape, 3, 3)`` random rotations (angles up to ``max_angle``) from

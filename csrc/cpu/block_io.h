@@ -1,16 +1,24 @@
-// Moving blocks of L::width matrices between memory (any element strides)
-// and structure-of-arrays registers (entry k of every matrix of the block in
-// one vector): in-register transposition for full contiguous blocks, plain
-// vector loads and stores for full blocks already in structure-of-arrays
-// layout (matrix index stride 1, e.g. a permuted (3, 3, N) tensor), a gather
-// through a small buffer otherwise. Shared by the batched kernels.
+// Moving blocks of L::width matrices between memory (any Layout) and
+// structure-of-arrays registers (entry k of every matrix of the block in one
+// vector): in-register transposition for full contiguous blocks, plain vector
+// loads and stores for full blocks already in structure-of-arrays layout
+// (matrix index stride 1, e.g. a permuted (3, 3, N) tensor, or a tile of a
+// tiled one at least a block wide), runs of 32 or 16 bytes through a small
+// buffer for tiles narrower than a block (the paper authors' tiles of 8
+// float matrices against AVX-512's 16 lanes), a gather through that buffer
+// otherwise. Shared by the batched kernels, which start their blocks at
+// multiples of the width (parallel_blocks).
 #pragma once
+
+#include <ATen/Parallel.h>
 
 #include <algorithm>
 #include <cstdint>
+#include <cstring>
 
 #include "../kernel/force_inline.h"
 #include "../kernel/lanes.h"
+#include "kernel_table.h"
 #include "soa_transpose.h"
 
 namespace torchrot {
@@ -20,37 +28,57 @@ namespace {
 
 using kernel::Mat3;
 
-// Entry (r, c) of matrix i, for arbitrary or for contiguous (9, 3, 1) strides.
-template <bool kContiguous>
-inline int64_t offset(const int64_t stride[3], int64_t i, int k) {
-  if (kContiguous) return 9 * i + k;
-  return i * stride[0] + (k / 3) * stride[1] + (k % 3) * stride[2];
+// Runs f(begin, end) on [0, n) in parallel, split at multiples of `width`:
+// every block of `width` matrices the kernels take from `begin` on then
+// starts at a multiple of the width, so that a tiled layout's tiles line up
+// with the blocks however the threads split the batch. (Results do not
+// depend on the split: each lane computes on its own matrix.)
+template <typename F>
+void parallel_blocks(int64_t n, int64_t width, int64_t grain, const F& f) {
+  const int64_t blocks = (n + width - 1) / width;
+  at::parallel_for(0, blocks, std::max<int64_t>(1, grain / width),
+                   [&](int64_t first_block, int64_t end_block) { f(first_block * width, std::min(n, end_block * width)); });
 }
 
-// Whether a full block at these strides is in structure-of-arrays layout:
-// entry k of W consecutive matrices is W consecutive values.
-inline bool is_soa_batch(const int64_t stride[3]) { return stride[0] == 1; }
+// Offset of matrix i (Layout).
+inline int64_t matrix_offset(const Layout& layout, int64_t i) {
+  if (layout.tile == 0) return i * layout.stride[0];
+  return (i / layout.tile) * layout.tile_stride + (i % layout.tile) * layout.stride[0];
+}
+
+// Offset of entry k of matrix 0.
+inline int64_t entry_offset(const Layout& layout, int k) {
+  return (k / 3) * layout.stride[1] + (k % 3) * layout.stride[2];
+}
+
+// Entry (r, c) of matrix i, for any layout or for contiguous (9, 3, 1) strides.
+template <bool kContiguous>
+inline int64_t offset(const Layout& layout, int64_t i, int k) {
+  if (kContiguous) return 9 * i + k;
+  return matrix_offset(layout, i) + entry_offset(layout, k);
+}
+
+// Whether the matrix index runs with stride 1 (within tiles, if tiled): then
+// entry k of consecutive matrices is consecutive values.
+inline bool is_soa_batch(const Layout& layout) { return layout.stride[0] == 1; }
 
 // Blocks ahead that the SoA paths prefetch each of their nine entry streams
 // per tensor: M, init and out make 27 streams, more than the hardware
 // prefetchers follow.
 constexpr int64_t kSoaPrefetchBlocks = 4;
 
-// Offset of entry k of matrix 0 (the start of entry k's values in SoA layout).
-inline int64_t entry_offset(const int64_t stride[3], int k) { return (k / 3) * stride[1] + (k % 3) * stride[2]; }
-
 // load_block and store_block of vector lanes through a buffer, element by
 // element: for any strides and for tail blocks. Out of line, so that the
 // vector paths of the callers keep their registers (measured: inlined, they
 // made the SoA one-step fit 10% slower).
 template <typename L, bool kContiguous>
-[[gnu::noinline]] Mat3<typename L::V> gather_block(const typename L::Scalar* data, const int64_t stride[3],
+[[gnu::noinline]] Mat3<typename L::V> gather_block(const typename L::Scalar* data, const Layout& layout,
                                                   int64_t first, int count) {
   using T = typename L::Scalar;
   alignas(64) T buf[9][L::width];
   for (int j = 0; j < L::width; ++j) {
     for (int k = 0; k < 9; ++k) {
-      buf[k][j] = j < count ? data[offset<kContiguous>(stride, first + j, k)] : T(k % 4 == 0 ? 1 : 0);
+      buf[k][j] = j < count ? data[offset<kContiguous>(layout, first + j, k)] : T(k % 4 == 0 ? 1 : 0);
     }
   }
   Mat3<typename L::V> A;
@@ -59,40 +87,142 @@ template <typename L, bool kContiguous>
 }
 
 template <typename L, bool kContiguous>
-[[gnu::noinline]] void scatter_block(const Mat3<typename L::V>& R, typename L::Scalar* data, const int64_t stride[3],
+[[gnu::noinline]] void scatter_block(const Mat3<typename L::V>& R, typename L::Scalar* data, const Layout& layout,
                                      int64_t first, int count) {
   using T = typename L::Scalar;
   alignas(64) T buf[9][L::width];
   for (int k = 0; k < 9; ++k) L::store(R.a[k], buf[k]);
   for (int j = 0; j < count; ++j)
-    for (int k = 0; k < 9; ++k) data[offset<kContiguous>(stride, first + j, k)] = buf[k][j];
+    for (int k = 0; k < 9; ++k) data[offset<kContiguous>(layout, first + j, k)] = buf[k][j];
+}
+
+// The offsets of the L::width / kRun runs of kRun consecutive matrices that
+// make up the block of a tiled SoA layout starting at matrix `first`.
+template <typename L, int kRun>
+TORCHROT_INLINE void tiled_runs(const Layout& layout, int64_t first, int64_t run[L::width / kRun]) {
+  int64_t tile = first / layout.tile, within = first % layout.tile;
+  for (int r = 0; r < L::width / kRun; ++r) {
+    run[r] = tile * layout.tile_stride + within;
+    within += kRun;
+    if (within == layout.tile) within = 0, ++tile;
+  }
+}
+
+// A full block of a tiled SoA layout whose tiles are narrower than the block
+// (or not aligned with it) but made of runs of kRun matrices that start at
+// multiples of kRun: runs of half a block (the paper authors' 8 float
+// matrices against AVX-512's 16 lanes) are loaded as halves of each vector
+// (VectorLanes::load_halves); shorter ones are copied run by run (kRun
+// values, 16 or 32 bytes: one vector move each) into a buffer and loaded
+// from there (out of line, as gather_block).
+template <typename L, int kRun>
+[[gnu::noinline]] Mat3<typename L::V> load_tiled_runs(const typename L::Scalar* data, const Layout& layout,
+                                                     int64_t first) {
+  using T = typename L::Scalar;
+  int64_t run[L::width / kRun];
+  tiled_runs<L, kRun>(layout, first, run);
+  Mat3<typename L::V> A;
+  if constexpr (2 * kRun == L::width) {
+    for (int k = 0; k < 9; ++k) {
+      const int64_t entry = entry_offset(layout, k);
+      A.a[k] = L::load_halves(data + run[0] + entry, data + run[1] + entry);
+    }
+  } else {
+    alignas(64) T buf[9][L::width];
+    for (int r = 0; r < L::width / kRun; ++r) {
+      for (int k = 0; k < 9; ++k) std::memcpy(&buf[k][r * kRun], data + run[r] + entry_offset(layout, k), kRun * sizeof(T));
+    }
+    for (int k = 0; k < 9; ++k) A.a[k] = L::load(buf[k]);
+  }
+  return A;
+}
+
+template <typename L, int kRun>
+[[gnu::noinline]] void store_tiled_runs(const Mat3<typename L::V>& R, typename L::Scalar* data, const Layout& layout,
+                                        int64_t first) {
+  using T = typename L::Scalar;
+  int64_t run[L::width / kRun];
+  tiled_runs<L, kRun>(layout, first, run);
+  if constexpr (2 * kRun == L::width) {
+    for (int k = 0; k < 9; ++k) {
+      const int64_t entry = entry_offset(layout, k);
+      L::store_halves(R.a[k], data + run[0] + entry, data + run[1] + entry);
+    }
+  } else {
+    alignas(64) T buf[9][L::width];
+    for (int k = 0; k < 9; ++k) L::store(R.a[k], buf[k]);
+    for (int r = 0; r < L::width / kRun; ++r) {
+      for (int k = 0; k < 9; ++k) std::memcpy(data + run[r] + entry_offset(layout, k), &buf[k][r * kRun], kRun * sizeof(T));
+    }
+  }
+}
+
+// How a full block starting at matrix `first` of an SoA layout (is_soa_batch)
+// is moved: its matrices consecutive in memory (untiled, or within one tile):
+// kVector, from the returned offset of matrix `first`; in runs of 32 or 16
+// bytes (kRuns32, kRuns16: a tiled layout whose tiles and `first` are
+// multiples of them); or element by element (kGather).
+enum class SoaMove { kVector, kRuns32, kRuns16, kGather };
+
+template <typename L>
+TORCHROT_INLINE SoaMove soa_move(const Layout& layout, int64_t first, int64_t& base) {
+  using T = typename L::Scalar;
+  if (layout.tile == 0) {
+    base = first;
+    return SoaMove::kVector;
+  }
+  const int64_t within = first % layout.tile;
+  if (within + L::width <= layout.tile) {
+    base = (first / layout.tile) * layout.tile_stride + within;
+    return SoaMove::kVector;
+  }
+  constexpr int64_t run32 = 32 / sizeof(T), run16 = 16 / sizeof(T);
+  if (L::width % run32 == 0 && layout.tile % run32 == 0 && within % run32 == 0) return SoaMove::kRuns32;
+  if (L::width % run16 == 0 && layout.tile % run16 == 0 && within % run16 == 0) return SoaMove::kRuns16;
+  return SoaMove::kGather;
 }
 
 // Gathers `count` matrices starting at `first` into SoA lanes; missing lanes
 // of a tail block get the identity, a harmless input.
 template <typename L, bool kContiguous>
-TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, const int64_t stride[3],
+TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, const Layout& layout,
                                                int64_t first, int count) {
   Mat3<typename L::V> A;
   if constexpr (kernel::IsPaired<L>::value) {  // two half blocks
     using H = typename L::HalfLanes;
-    const Mat3<typename H::V> lo = load_block<H, kContiguous>(data, stride, first, std::min(count, H::width));
+    const Mat3<typename H::V> lo = load_block<H, kContiguous>(data, layout, first, std::min(count, H::width));
     const Mat3<typename H::V> hi =
-        load_block<H, kContiguous>(data, stride, first + H::width, std::max(count - H::width, 0));
+        load_block<H, kContiguous>(data, layout, first + H::width, std::max(count - H::width, 0));
     for (int k = 0; k < 9; ++k) A.a[k] = {lo.a[k], hi.a[k]};
     return A;
   } else if constexpr (L::width == 1) {  // the scalar path: one matrix, straight
-    for (int k = 0; k < 9; ++k) A.a[k] = data[offset<kContiguous>(stride, first, k)];
+    for (int k = 0; k < 9; ++k) A.a[k] = data[offset<kContiguous>(layout, first, k)];
     return A;
   } else {
     if constexpr (!kContiguous) {
-      if (count == L::width && is_soa_batch(stride)) {  // full block, SoA: plain vectors
-        for (int k = 0; k < 9; ++k) {
-          const typename L::Scalar* entry = data + first + entry_offset(stride, k);
-          __builtin_prefetch(entry + kSoaPrefetchBlocks * L::width);
-          A.a[k] = L::load(entry);
+      if (count == L::width && is_soa_batch(layout)) {  // full block, SoA
+        int64_t base = 0;
+        switch (soa_move<L>(layout, first, base)) {
+          case SoaMove::kVector:  // plain vectors
+            for (int k = 0; k < 9; ++k) {
+              const typename L::Scalar* entry = data + base + entry_offset(layout, k);
+              __builtin_prefetch(entry + kSoaPrefetchBlocks * L::width);
+              A.a[k] = L::load(entry);
+            }
+            return A;
+          case SoaMove::kRuns32:
+            if constexpr (L::width * sizeof(typename L::Scalar) > 32) {
+              return load_tiled_runs<L, 32 / sizeof(typename L::Scalar)>(data, layout, first);
+            }
+            break;
+          case SoaMove::kRuns16:
+            if constexpr (L::width * sizeof(typename L::Scalar) > 16) {
+              return load_tiled_runs<L, 16 / sizeof(typename L::Scalar)>(data, layout, first);
+            }
+            break;
+          case SoaMove::kGather:
+            break;
         }
-        return A;
       }
     }
 #ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
@@ -103,12 +233,12 @@ TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, c
       }
     }
 #endif
-    return gather_block<L, kContiguous>(data, stride, first, count);
+    return gather_block<L, kContiguous>(data, layout, first, count);
   }
 }
 
 template <typename L, bool kContiguous>
-TORCHROT_INLINE void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, const int64_t stride[3],
+TORCHROT_INLINE void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, const Layout& layout,
                                  int64_t first, int count) {
   if constexpr (kernel::IsPaired<L>::value) {
     using H = typename L::HalfLanes;
@@ -117,10 +247,10 @@ TORCHROT_INLINE void store_block(const Mat3<typename L::V>& R, typename L::Scala
       lo.a[k] = R.a[k].lo;
       hi.a[k] = R.a[k].hi;
     }
-    store_block<H, kContiguous>(lo, data, stride, first, std::min(count, H::width));
-    if (count > H::width) store_block<H, kContiguous>(hi, data, stride, first + H::width, count - H::width);
+    store_block<H, kContiguous>(lo, data, layout, first, std::min(count, H::width));
+    if (count > H::width) store_block<H, kContiguous>(hi, data, layout, first + H::width, count - H::width);
   } else if constexpr (L::width == 1) {
-    for (int k = 0; k < 9; ++k) data[offset<kContiguous>(stride, first, k)] = R.a[k];
+    for (int k = 0; k < 9; ++k) data[offset<kContiguous>(layout, first, k)] = R.a[k];
   } else {
 #ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
     if constexpr (kContiguous) {
@@ -131,20 +261,39 @@ TORCHROT_INLINE void store_block(const Mat3<typename L::V>& R, typename L::Scala
     }
 #endif
     if constexpr (!kContiguous) {
-      if (count == L::width && is_soa_batch(stride)) {
-        for (int k = 0; k < 9; ++k) {
-          typename L::Scalar* entry = data + first + entry_offset(stride, k);
-          __builtin_prefetch(entry + kSoaPrefetchBlocks * L::width, 1);
-          L::store(R.a[k], entry);
+      if (count == L::width && is_soa_batch(layout)) {
+        int64_t base = 0;
+        switch (soa_move<L>(layout, first, base)) {
+          case SoaMove::kVector:
+            for (int k = 0; k < 9; ++k) {
+              typename L::Scalar* entry = data + base + entry_offset(layout, k);
+              __builtin_prefetch(entry + kSoaPrefetchBlocks * L::width, 1);
+              L::store(R.a[k], entry);
+            }
+            return;
+          case SoaMove::kRuns32:
+            if constexpr (L::width * sizeof(typename L::Scalar) > 32) {
+              return store_tiled_runs<L, 32 / sizeof(typename L::Scalar)>(R, data, layout, first);
+            }
+            break;
+          case SoaMove::kRuns16:
+            if constexpr (L::width * sizeof(typename L::Scalar) > 16) {
+              return store_tiled_runs<L, 16 / sizeof(typename L::Scalar)>(R, data, layout, first);
+            }
+            break;
+          case SoaMove::kGather:
+            break;
         }
-        return;
       }
     }
-    scatter_block<L, kContiguous>(R, data, stride, first, count);
+    scatter_block<L, kContiguous>(R, data, layout, first, count);
   }
 }
 
-inline bool is_contiguous_batch(const int64_t s[3]) { return s[0] == 9 && s[1] == 3 && s[2] == 1; }
+inline bool is_contiguous_batch(const Layout& layout) {
+  const int64_t* s = layout.stride;
+  return layout.tile == 0 && s[0] == 9 && s[1] == 3 && s[2] == 1;
+}
 
 }  // namespace
 }  // namespace CPU_CAPABILITY

@@ -94,9 +94,11 @@ const cpu::KernelTable& kernels(Isa isa) {
 }
 
 template <typename T>
-void fill_view(const MatrixBatch& batch, const T*& data, int64_t stride[3]) {
+void fill_view(const MatrixBatch& batch, const T*& data, cpu::Layout& layout) {
   data = static_cast<const T*>(batch.data);
-  for (int d = 0; d < 3; ++d) stride[d] = batch.stride[d];
+  for (int d = 0; d < 3; ++d) layout.stride[d] = batch.stride[d];
+  layout.tile = batch.tile;
+  layout.tile_stride = batch.tile_stride;
 }
 
 WarmStartCount run_kernel(const cpu::KernelTable& table, const cpu::WarmStartArgs<float>& args) {
@@ -144,7 +146,7 @@ WarmStartCount count_bad_warm_starts_cpu(at::ScalarType dtype, int64_t n, const 
   WarmStartCount bad;
   AT_DISPATCH_FLOATING_TYPES(dtype, "torchrot_count_bad_warm_starts_cpu", [&] {
     cpu::WarmStartArgs<scalar_t> args{};
-    fill_view(init, args.init, args.stride);
+    fill_view(init, args.init, args.layout);
     args.n = n;
     bad = run_kernel(table, args);
   });
@@ -158,10 +160,10 @@ int64_t fit_rotation_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& M, 
   int64_t bad_inits = 0;
   AT_DISPATCH_FLOATING_TYPES(dtype, "torchrot_fit_rotation_cpu", [&] {
     cpu::BatchArgs<scalar_t> args{};
-    fill_view(M, args.M, args.m_stride);
-    if (init != nullptr) fill_view(*init, args.init, args.init_stride);
+    fill_view(M, args.M, args.m_layout);
+    if (init != nullptr) fill_view(*init, args.init, args.init_layout);
     const scalar_t* out_data = nullptr;
-    fill_view(out, out_data, args.out_stride);
+    fill_view(out, out_data, args.out_layout);
     args.out = const_cast<scalar_t*>(out_data);
     args.n = n;
     args.options = options;
@@ -177,11 +179,11 @@ void rotation_tangent_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& X,
   const cpu::KernelTable& table = kernels(selected_isa());
   AT_DISPATCH_FLOATING_TYPES(dtype, "torchrot_rotation_tangent_cpu", [&] {
     cpu::TangentArgs<scalar_t> args{};
-    fill_view(X, args.X, args.x_stride);
-    fill_view(R, args.R, args.r_stride);
-    fill_view(M, args.M, args.m_stride);
+    fill_view(X, args.X, args.x_layout);
+    fill_view(R, args.R, args.r_layout);
+    fill_view(M, args.M, args.m_layout);
     const scalar_t* out_data = nullptr;
-    fill_view(out, out_data, args.out_stride);
+    fill_view(out, out_data, args.out_layout);
     args.out = const_cast<scalar_t*>(out_data);
     args.n = n;
     args.damping = static_cast<scalar_t>(damping);

@@ -9,7 +9,6 @@
 // matrix lands in: every lane computes the same operations on its own matrix.
 #pragma once
 
-#include <ATen/Parallel.h>
 
 #include <algorithm>
 #include <atomic>
@@ -146,9 +145,9 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
     for (int64_t first = sub; first < sub_end; first += L::width) {
       const int count = static_cast<int>(std::min<int64_t>(L::width, sub_end - first));
       // Both inputs are in registers before `out` is written: out may alias them.
-      const Mat3<typename L::V> M = load_block<L, kContiguous>(args.M, args.m_stride, first, count);
+      const Mat3<typename L::V> M = load_block<L, kContiguous>(args.M, args.m_layout, first, count);
       Mat3<typename L::V> R0;
-      if constexpr (!kCold) R0 = load_block<L, kContiguous>(args.init, args.init_stride, first, count);
+      if constexpr (!kCold) R0 = load_block<L, kContiguous>(args.init, args.init_layout, first, count);
       // Cold starts' first step takes the maximal objective as its estimate.
       typename L::V objective;
       kernel::LaneState<L> s = kernel::begin_fit<L>(M, kCold ? nullptr : &R0, args.options.init_known_clean,
@@ -159,7 +158,7 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
         kernel::advance<L, kCold>(s, args.options, first_budget, kCold ? &objective : nullptr);
       }
       // Lanes still running get a provisional result, replaced in a later pass.
-      store_block<L, kContiguous>(kernel::finish<L>(s), args.out, args.out_stride, first, count);
+      store_block<L, kContiguous>(kernel::finish<L>(s), args.out, args.out_layout, first, count);
       if (!kCold && L::any(s.bad_init)) {
         for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
       }
@@ -191,7 +190,7 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
         for (int j = 0; j < count; ++j) {
           const int64_t index = indices[j];
           if (L::lane_set(s.running, j)) continue;
-          for (int k = 0; k < 9; ++k) args.out[offset<kContiguous>(args.out_stride, index, k)] = entries[k][j];
+          for (int k = 0; k < 9; ++k) args.out[offset<kContiguous>(args.out_layout, index, k)] = entries[k][j];
           if (diagnostics) store_diagnostics<L>(s, j, args, index);
         }
       }
@@ -203,14 +202,14 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
 
 template <typename L>
 int64_t fit_batch(const BatchArgs<typename L::Scalar>& args) {
-  const bool contiguous = is_contiguous_batch(args.m_stride) && is_contiguous_batch(args.out_stride) &&
-                          (args.init == nullptr || is_contiguous_batch(args.init_stride));
+  const bool contiguous = is_contiguous_batch(args.m_layout) && is_contiguous_batch(args.out_layout) &&
+                          (args.init == nullptr || is_contiguous_batch(args.init_layout));
   std::atomic<int64_t> bad_inits{0};
   // One instantiation per case, so that each loop is compiled for its own
   // (measured: warm one-step fits took 2.4 (AVX-512) and 4.1 (AVX2) more
   // instructions per matrix in one loop with the cold start's code).
   const auto run = [&](auto one_step, auto cold) {
-    at::parallel_for(0, args.n, kGrainSize, [&](int64_t begin, int64_t end) {
+    parallel_blocks(args.n, L::width, kGrainSize, [&](int64_t begin, int64_t end) {
       bad_inits += contiguous ? fit_range<L, true, one_step.value, cold.value>(args, begin, end)
                               : fit_range<L, false, one_step.value, cold.value>(args, begin, end);
     });
@@ -233,14 +232,14 @@ template <typename L>
 WarmStartCount count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& args) {
   using T = typename L::Scalar;
   using V = typename L::V;
-  const bool contiguous = is_contiguous_batch(args.stride);
+  const bool contiguous = is_contiguous_batch(args.layout);
   std::atomic<int64_t> bad{0}, unclean{0};
-  at::parallel_for(0, args.n, kGrainSize, [&](int64_t begin, int64_t end) {
+  parallel_blocks(args.n, L::width, kGrainSize, [&](int64_t begin, int64_t end) {
     int64_t local_bad = 0, local_unclean = 0;
     for (int64_t first = begin; first < end; first += L::width) {
       const int count = static_cast<int>(std::min<int64_t>(L::width, end - first));
-      const Mat3<V> R0 = contiguous ? load_block<L, true>(args.init, args.stride, first, count)
-                                    : load_block<L, false>(args.init, args.stride, first, count);
+      const Mat3<V> R0 = contiguous ? load_block<L, true>(args.init, args.layout, first, count)
+                                    : load_block<L, false>(args.init, args.layout, first, count);
       const kernel::WarmStartCheck<L> check = kernel::check_warm_start<L>(R0);
       const typename L::Mask clean = kernel::used_as_is<L>(check, kernel::Tolerances<T>::init_clean);
       if (!L::all(clean)) {

@@ -19,15 +19,25 @@
 namespace torchrot {
 namespace cpu {
 
-// N matrices of 3x3 with arbitrary element strides (in elements).
+// Where the matrices of a batch are, in elements (MatrixBatch, without its
+// pointer): entry (r, c) of matrix i at matrix_offset(i) + r * stride[1] +
+// c * stride[2] (block_io.h), matrix_offset(i) = i * stride[0] or, tiled
+// (tile > 0), (i / tile) * tile_stride + (i % tile) * stride[0].
+struct Layout {
+  int64_t stride[3];
+  int64_t tile;
+  int64_t tile_stride;
+};
+
+// N matrices of 3x3 in any layout.
 template <typename T>
 struct BatchArgs {
   const T* M;
-  int64_t m_stride[3];
+  Layout m_layout;
   const T* init;  // null: cold start
-  int64_t init_stride[3];
+  Layout init_layout;
   T* out;  // may alias M or init exactly
-  int64_t out_stride[3];
+  Layout out_layout;
   int64_t n;
   FitOptions options;
   int32_t* iterations;  // optional, n entries
@@ -36,27 +46,27 @@ struct BatchArgs {
 
 // The derivative of N fits (see kernel/rotation_gradient.h): out = R [u]x
 // with u the damped solution of the optimality condition's linearisation
-// for X = dL/dR or dM. All four are N 3x3 matrices with any element strides;
+// for X = dL/dR or dM. All four are N 3x3 matrices in any layout;
 // out may alias X exactly.
 template <typename T>
 struct TangentArgs {
   const T* X;
-  int64_t x_stride[3];
+  Layout x_layout;
   const T* R;
-  int64_t r_stride[3];
+  Layout r_layout;
   const T* M;
-  int64_t m_stride[3];
+  Layout m_layout;
   T* out;
-  int64_t out_stride[3];
+  Layout out_layout;
   int64_t n;
   T damping;  // eps of lambda = eps |M|_F
 };
 
-// N warm starts (3x3, any element strides) to check without fitting.
+// N warm starts (3x3, any layout) to check without fitting.
 template <typename T>
 struct WarmStartArgs {
   const T* init;
-  int64_t stride[3];
+  Layout layout;
   int64_t n;
 };
 

@@ -8,7 +8,6 @@
 // and write its 144 bytes.
 #pragma once
 
-#include <ATen/Parallel.h>
 
 #include <algorithm>
 
@@ -28,21 +27,19 @@ void tangent_range(const TangentArgs<typename L::Scalar>& args, int64_t begin, i
   for (int64_t first = begin; first < end; first += L::width) {
     const int count = static_cast<int>(std::min<int64_t>(L::width, end - first));
     // All inputs are in registers before `out` is written: out may alias X.
-    const Mat3<typename L::V> X = load_block<L, kContiguous>(args.X, args.x_stride, first, count);
-    const Mat3<typename L::V> R = load_block<L, kContiguous>(args.R, args.r_stride, first, count);
-    const Mat3<typename L::V> M = load_block<L, kContiguous>(args.M, args.m_stride, first, count);
-    store_block<L, kContiguous>(kernel::rotation_tangent<L>(X, R, M, args.damping), args.out, args.out_stride,
+    const Mat3<typename L::V> X = load_block<L, kContiguous>(args.X, args.x_layout, first, count);
+    const Mat3<typename L::V> R = load_block<L, kContiguous>(args.R, args.r_layout, first, count);
+    const Mat3<typename L::V> M = load_block<L, kContiguous>(args.M, args.m_layout, first, count);
+    store_block<L, kContiguous>(kernel::rotation_tangent<L>(X, R, M, args.damping), args.out, args.out_layout,
                                 first, count);
   }
 }
 
 template <typename L>
 void tangent_batch(const TangentArgs<typename L::Scalar>& args) {
-  const bool contiguous = is_contiguous_batch(args.x_stride) && is_contiguous_batch(args.r_stride) &&
-                          is_contiguous_batch(args.m_stride) && is_contiguous_batch(args.out_stride);
-  // Blocks start at multiples of the width from `begin`: results do not
-  // depend on the split (each lane computes on its own matrix anyway).
-  at::parallel_for(0, args.n, kTangentGrainSize, [&](int64_t begin, int64_t end) {
+  const bool contiguous = is_contiguous_batch(args.x_layout) && is_contiguous_batch(args.r_layout) &&
+                          is_contiguous_batch(args.m_layout) && is_contiguous_batch(args.out_layout);
+  parallel_blocks(args.n, L::width, kTangentGrainSize, [&](int64_t begin, int64_t end) {
     if (contiguous) {
       tangent_range<L, true>(args, begin, end);
     } else {

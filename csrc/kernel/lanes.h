@@ -183,6 +183,54 @@ struct VectorLanes : Masks<T> {
 
   static V load(const T* p) { return V::loadu(p); }
   static void store(V v, T* p) { v.store(p); }
+  // A vector whose first half of lanes is read from `lo` and second half from
+  // `hi` (block_io.h: tiles half a block wide), and the store that splits it
+  // so: a load and an insert (an extract and two stores) on AVX-512 and AVX2,
+  // through a buffer elsewhere.
+  static V load_halves(const T* lo, const T* hi) {
+#if defined(CPU_CAPABILITY_AVX512)
+    if constexpr (std::is_same_v<T, float>) {
+      return _mm512_insertf32x8(_mm512_castps256_ps512(_mm256_loadu_ps(lo)), _mm256_loadu_ps(hi), 1);
+    } else {
+      return _mm512_insertf64x4(_mm512_castpd256_pd512(_mm256_loadu_pd(lo)), _mm256_loadu_pd(hi), 1);
+    }
+#elif defined(CPU_CAPABILITY_AVX2)
+    if constexpr (std::is_same_v<T, float>) {
+      return _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(lo)), _mm_loadu_ps(hi), 1);
+    } else {
+      return _mm256_insertf128_pd(_mm256_castpd128_pd256(_mm_loadu_pd(lo)), _mm_loadu_pd(hi), 1);
+    }
+#else
+    T buf[width];
+    std::copy(lo, lo + width / 2, buf);
+    std::copy(hi, hi + width / 2, buf + width / 2);
+    return V::loadu(buf);
+#endif
+  }
+  static void store_halves(V v, T* lo, T* hi) {
+#if defined(CPU_CAPABILITY_AVX512)
+    if constexpr (std::is_same_v<T, float>) {
+      _mm256_storeu_ps(lo, _mm512_castps512_ps256(v));
+      _mm256_storeu_ps(hi, _mm512_extractf32x8_ps(v, 1));
+    } else {
+      _mm256_storeu_pd(lo, _mm512_castpd512_pd256(v));
+      _mm256_storeu_pd(hi, _mm512_extractf64x4_pd(v, 1));
+    }
+#elif defined(CPU_CAPABILITY_AVX2)
+    if constexpr (std::is_same_v<T, float>) {
+      _mm_storeu_ps(lo, _mm256_castps256_ps128(v));
+      _mm_storeu_ps(hi, _mm256_extractf128_ps(v, 1));
+    } else {
+      _mm_storeu_pd(lo, _mm256_castpd256_pd128(v));
+      _mm_storeu_pd(hi, _mm256_extractf128_pd(v, 1));
+    }
+#else
+    T buf[width];
+    v.store(buf);
+    std::copy(buf, buf + width / 2, lo);
+    std::copy(buf + width / 2, buf + width, hi);
+#endif
+  }
   static V abs(V x) { return x.abs(); }
   static V sqrt(V x) { return x.sqrt(); }
   // x limited to [lo, hi] (lo <= hi, neither NaN); a NaN x is returned as it
