@@ -89,11 +89,13 @@ def main() -> None:
             kernel(M_shuffled.data_ptr(), R_shuffled.data_ptr(), groups)
             out.view(groups, TILE, 9).copy_(R_shuffled.transpose(1, 2))
 
-        fit = torchrot.fit_rotation
+        fit, check = torchrot.fit_rotation, torch.ops.torchrot._count_bad_warm_starts
         calls = {
             "copy_ of M": lambda: buffer.copy_(M),
             "authors' one-step AVX, their layout, in place": lambda: kernel(M_blocks.data_ptr(), R_blocks.data_ptr(), groups),
             "torchrot one-step, the same layout (tiled views), in place": lambda: fit(M_tiles, R_tiles, max_iter=1, out=R_tiles),
+            # An out= call first checks every warm start, so that one that raises leaves out as it was.
+            "of which: torchrot's check of the warm starts before writing": lambda: check(R_tiles),
             "authors' one-step incl. shuffling (N, 3, 3) in and out": authors_with_shuffles,
             "torchrot one-step, (N, 3, 3), in place": lambda: fit(M, out, max_iter=1, out=out),
         }
