@@ -198,19 +198,26 @@ std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes
   return std::nullopt;
 }
 
-// Whether `t` is in structure-of-arrays layout: dense, with its batch
-// dimensions flattening to one of stride 1 (the matrix index fastest, as in a
-// permuted (3, 3, N) tensor) and more than one matrix. The kernels load and
-// store such tensors as plain vectors.
+// Whether `t` is in structure-of-arrays layout: dense, the matrix index of
+// stride 1 across all its batch dimensions (a permuted (3, 3, N) tensor) or
+// within tiles (the paper authors' (N / 8, 8, 3, 3) blocks): its trailing
+// batch dimensions flatten to one of stride 1 and more than one matrix, its
+// leading ones (if any) to one stride, so that batch_view reads it in place.
+// The kernels load and store such tensors as plain vectors.
 bool has_soa_layout(const at::Tensor& t) {
   if (t.dim() < 3) return false;
-  int64_t matrices = 1;
-  for (int64_t d = t.dim() - 3; d >= 0; --d) {
-    if (t.size(d) == 1) continue;
-    if (t.stride(d) != matrices) return false;
-    matrices *= t.size(d);
+  std::vector<std::pair<int64_t, int64_t>> batch;  // (size, stride) of the batch dimensions of size > 1
+  for (int64_t d = 0; d < t.dim() - 2; ++d) {
+    if (t.size(d) != 1) batch.emplace_back(t.size(d), t.stride(d));
   }
-  return matrices > 1 && t.is_non_overlapping_and_dense();
+  size_t leading = batch.size();
+  int64_t run = 1;  // the matrices of the stride-1 run
+  while (leading > 0 && batch[leading - 1].second == run) run *= batch[--leading].first;
+  if (run == 1) return false;
+  for (size_t d = 0; d + 1 < leading; ++d) {
+    if (batch[d].second != batch[d + 1].second * batch[d + 1].first) return false;
+  }
+  return t.is_non_overlapping_and_dense();
 }
 
 // A new result of `t`'s shape: in t's layout where that is structure of

@@ -9,7 +9,7 @@ import torch
 
 import torchrot
 from torchrot._limits import INIT_TOLERANCE
-from torchrot.testing import CRITERIA, make_matrices, rotation_errors, rotation_svd, rotations
+from torchrot.testing import CRITERIA, make_matrices, rotation_errors, rotation_svd, rotations, tiled_view
 
 op = torch.ops.torchrot
 
@@ -87,6 +87,7 @@ def _non_contiguous_inputs(dtype):
         "permuted_batch": base.reshape(6, 20, 3, 3).transpose(0, 1),
         "inner_step": padded[:, ::2, ::2],
         "column_major_batch": base.permute(1, 2, 0).contiguous().permute(2, 0, 1),
+        "tiled_batch": tiled_view(base[:96], 8),  # tiles of 8 matrices in structure of arrays
         # overlapping matrices: matrix i + 1 starts at row 1 of matrix i
         "overlapping_batch": torch.as_strided(base, (100, 3, 3), (3, 3, 1)),
     }
@@ -94,7 +95,7 @@ def _non_contiguous_inputs(dtype):
 
 NON_CONTIGUOUS_KINDS = [
     "transposed_strides", "transposed", "batch_step", "expanded_batch", "expanded_rows",
-    "permuted_batch", "inner_step", "column_major_batch", "overlapping_batch",
+    "permuted_batch", "inner_step", "column_major_batch", "tiled_batch", "overlapping_batch",
 ]
 
 
@@ -108,7 +109,7 @@ def test_non_contiguous_M(kind, dtype, max_iter):
         init = rotation_svd(M.double()).to(dtype) @ rotations(M.shape[:-2], 8, dtype, math.radians(10))
     R = torchrot.fit_rotation(M, init, max_iter=max_iter)
     expected = torchrot.fit_rotation(M.contiguous(), init, max_iter=max_iter)
-    if kind == "column_major_batch":  # structure of arrays: the result keeps M's layout
+    if kind in ("column_major_batch", "tiled_batch"):  # structure of arrays: the result keeps M's layout
         assert R.stride() == M.stride()
     else:
         assert R.is_contiguous()

@@ -581,8 +581,9 @@ TILES = (2, 3, 4, 8, 16, 32)
 def test_tiled_layouts(isa, dtype, use_isa):
     """Tiled inputs (torchrot.testing.tiled_view: tiles of 2 to 32 matrices in
     structure of arrays, narrower and wider than every block, up to 70
-    matrices): fresh results, out= a tiled tensor and out=init in place are
-    the scalar kernel's on contiguous copies (rounding_reference)."""
+    matrices): fresh results (in M's layout), out= a tiled tensor and
+    out=init in place are the scalar kernel's on contiguous copies
+    (rounding_reference)."""
     pool_M, pool_init = _tail_pool(dtype)
     reference = rounding_reference(isa)
     failures = []
@@ -594,8 +595,10 @@ def test_tiled_layouts(isa, dtype, use_isa):
             for mode, use_init, max_iter in (("cold", False, None), ("warm-iter1", True, 1), ("warm", True, None)):
                 ref = _run_info(use_isa, reference, Mc, initc if use_init else None, max_iter, variant)
                 with use_isa(isa):
-                    got = tuple(t.reshape(ref_t.shape) for t, ref_t in
-                                zip(_info(M, init if use_init else None, max_iter, variant), ref))
+                    fresh = _info(M, init if use_init else None, max_iter, variant)
+                    if fresh[0].stride() != M.stride():
+                        failures.append(f"tile={tile} n={n}: result strides {fresh[0].stride()}, not M's {M.stride()}")
+                    got = tuple(t.reshape(ref_t.shape) for t, ref_t in zip(fresh, ref))
                     out = tiled_view(torch.zeros_like(Mc), tile)
                     torchrot.fit_rotation(M, init if use_init else None, max_iter=max_iter, variant=variant, out=out)
                     in_place = init.clone()

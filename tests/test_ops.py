@@ -9,7 +9,9 @@ import torch
 
 import torchrot
 from torchrot._limits import GRADIENT_EPS
-from torchrot.testing import WELL_CONDITIONED, make_matrices, rotation_svd, rotations, soa_view
+from torchrot.testing import (
+    WELL_CONDITIONED, make_matrices, make_warm_start, rotation_svd, rotations, soa_view, tiled_view,
+)
 
 op = torch.ops.torchrot
 
@@ -164,6 +166,25 @@ def test_compile_in_place_and_info(backend, compile_data):
     got = torch.compile(_fit_info, backend=backend, fullgraph=True)(M)
     expected = _fit_info(M)
     assert all(torch.equal(a, b) for a, b in zip(got, expected))
+
+
+@pytest.mark.parametrize("layout", ["soa", "tiles 16x8", "tiles 8x8"])
+def test_compile_keeps_result_layout(layout):
+    """Inductor with dynamic shapes: values and strides of the eager result,
+    for structure-of-arrays and tiled inputs (fresh results keep their layout;
+    8 tiles of 8 make the two batch sizes one symbol). The FX graph cache is
+    off: it keys on the graph, not on the fake kernels' layouts."""
+    n = 64 if layout == "tiles 8x8" else 128
+    M, init = make_warm_start("warm", n, seed=2, dtype=torch.float32)
+    view = soa_view if layout == "soa" else (lambda t: tiled_view(t, 8))
+    M, init = view(M), view(init)
+    torch._dynamo.reset()
+    with torch._inductor.config.patch(fx_graph_cache=False):
+        for max_iter in (1, None):
+            fit = torch.compile(lambda m, r: torchrot.fit_rotation(m, r, max_iter=max_iter), backend="inductor",
+                                fullgraph=True, dynamic=True)
+            got, expected = fit(M, init), torchrot.fit_rotation(M, init, max_iter=max_iter)
+            assert torch.equal(got, expected) and got.stride() == expected.stride() == M.stride()
 
 
 def test_compile_dynamic_batch():

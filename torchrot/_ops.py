@@ -254,19 +254,22 @@ def fit_rotation_info(
 
 def has_soa_layout(t: torch.Tensor) -> bool:
     """Whether ``t`` is in structure-of-arrays layout (csrc/ops.cpp's
-    has_soa_layout): dense, its batch dimensions flattening to one of stride 1
-    (the matrix index fastest, e.g. ``S.permute(2, 0, 1)`` of a (3, 3, N) S),
-    more than one matrix."""
+    has_soa_layout): dense, the matrix index of stride 1 across all its batch
+    dimensions (e.g. ``S.permute(2, 0, 1)`` of a (3, 3, N) S) or within tiles
+    (``torchrot.testing.tiled_view``): its trailing batch dimensions flatten
+    to one of stride 1 and more than one matrix, its leading ones to one stride."""
     if t.dim() < 3:
         return False
-    matrices = 1
-    for d in range(t.dim() - 3, -1, -1):
-        if t.shape[d] == 1:
-            continue
-        if t.stride(d) != matrices:
-            return False
-        matrices *= t.shape[d]
-    return matrices > 1 and torch._prims_common.is_non_overlapping_and_dense_or_false(t)
+    batch = [(t.shape[d], t.stride(d)) for d in range(t.dim() - 2) if t.shape[d] != 1]
+    leading, run = len(batch), 1
+    while leading > 0 and batch[leading - 1][1] == run:
+        leading -= 1
+        run *= batch[leading][0]
+    if run == 1:
+        return False
+    if any(batch[d][1] != batch[d + 1][1] * batch[d + 1][0] for d in range(leading - 1)):
+        return False
+    return torch._prims_common.is_non_overlapping_and_dense_or_false(t)
 
 
 def _empty_result(M: torch.Tensor) -> torch.Tensor:
