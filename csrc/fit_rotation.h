@@ -50,16 +50,21 @@ bool cpu_kernel_fuses_multiply_add();
 // previously forced name ("" if none). ValueError for an unknown name.
 std::string set_thread_cpu_kernel(const std::string& name);
 
-// N row-major 3x3 matrices at `data`: entry (r, c) of matrix i is at
-// data + offset(i) + r * stride[1] + c * stride[2] (in elements), with
-// offset(i) = i * stride[0], or in a tiled layout (tile > 0: matrices in tiles
-// of `tile`, e.g. the paper authors' blocks of 8 matrices in structure of
-// arrays) offset(i) = (i / tile) * tile_stride + (i % tile) * stride[0].
-struct MatrixBatch {
-  void* data = nullptr;
+// Where N row-major 3x3 matrices are, in elements: entry (r, c) of matrix i
+// at offset(i) + r * stride[1] + c * stride[2], with offset(i) = i * stride[0],
+// or in a tiled layout (tile > 0: matrices in tiles of `tile`, e.g. the paper
+// authors' blocks of 8 matrices in structure of arrays) offset(i) =
+// (i / tile) * tile_stride + (i % tile) * stride[0] (cpu/block_io.h).
+struct Layout {
   int64_t stride[3] = {9, 3, 1};
   int64_t tile = 0;
   int64_t tile_stride = 0;
+};
+
+// N row-major 3x3 matrices at `data`, laid out as `layout`.
+struct MatrixBatch {
+  void* data = nullptr;
+  Layout layout;
 };
 
 // Fits out[i] = argmax_R tr(R^T M[i]) for n float or double matrices (dtype)

@@ -181,7 +181,7 @@ std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes
   MatrixBatch view;
   view.data = t.data_ptr();
   if (const auto flat = at::detail::computeStride(sizes, strides, at::DimVector{n, 3, 3})) {
-    for (int d = 0; d < 3; ++d) view.stride[d] = (*flat)[d];
+    for (int d = 0; d < 3; ++d) view.layout.stride[d] = (*flat)[d];
     return view;
   }
   const int64_t batch_dims = static_cast<int64_t>(sizes.size()) - 2;
@@ -190,9 +190,9 @@ std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes
     for (int64_t d = split; d < batch_dims; ++d) tile *= sizes[d];
     const auto tiled = at::detail::computeStride(sizes, strides, at::DimVector{n / tile, tile, 3, 3});
     if (!tiled.has_value()) continue;
-    view.tile = tile;
-    view.tile_stride = (*tiled)[0];
-    for (int d = 0; d < 3; ++d) view.stride[d] = (*tiled)[d + 1];
+    view.layout.tile = tile;
+    view.layout.tile_stride = (*tiled)[0];
+    for (int d = 0; d < 3; ++d) view.layout.stride[d] = (*tiled)[d + 1];
     return view;
   }
   return std::nullopt;

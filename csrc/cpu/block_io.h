@@ -159,23 +159,17 @@ template <typename L, int kRun>
 
 // How a full block starting at matrix `first` of an SoA layout (is_soa_batch)
 // is moved: its matrices consecutive in memory (untiled, or within one tile):
-// kVector, from the returned offset of matrix `first`; in runs of 32 or 16
-// bytes (kRuns32, kRuns16: a tiled layout whose tiles and `first` are
-// multiples of them); or element by element (kGather).
+// kVector, from matrix_offset(first); in runs of 32 or 16 bytes (kRuns32,
+// kRuns16: a tiled layout whose tiles and `first` are multiples of them); or
+// element by element (kGather).
 enum class SoaMove { kVector, kRuns32, kRuns16, kGather };
 
 template <typename L>
-TORCHROT_INLINE SoaMove soa_move(const Layout& layout, int64_t first, int64_t& base) {
+TORCHROT_INLINE SoaMove soa_move(const Layout& layout, int64_t first) {
   using T = typename L::Scalar;
-  if (layout.tile == 0) {
-    base = first;
-    return SoaMove::kVector;
-  }
+  if (layout.tile == 0) return SoaMove::kVector;
   const int64_t within = first % layout.tile;
-  if (within + L::width <= layout.tile) {
-    base = (first / layout.tile) * layout.tile_stride + within;
-    return SoaMove::kVector;
-  }
+  if (within + L::width <= layout.tile) return SoaMove::kVector;
   constexpr int64_t run32 = 32 / sizeof(T), run16 = 16 / sizeof(T);
   if (L::width % run32 == 0 && layout.tile % run32 == 0 && within % run32 == 0) return SoaMove::kRuns32;
   if (L::width % run16 == 0 && layout.tile % run16 == 0 && within % run16 == 0) return SoaMove::kRuns16;
@@ -201,11 +195,10 @@ TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, c
   } else {
     if constexpr (!kContiguous) {
       if (count == L::width && is_soa_batch(layout)) {  // full block, SoA
-        int64_t base = 0;
-        switch (soa_move<L>(layout, first, base)) {
+        switch (soa_move<L>(layout, first)) {
           case SoaMove::kVector:  // plain vectors
             for (int k = 0; k < 9; ++k) {
-              const typename L::Scalar* entry = data + base + entry_offset(layout, k);
+              const typename L::Scalar* entry = data + matrix_offset(layout, first) + entry_offset(layout, k);
               __builtin_prefetch(entry + kSoaPrefetchBlocks * L::width);
               A.a[k] = L::load(entry);
             }
@@ -262,11 +255,10 @@ TORCHROT_INLINE void store_block(const Mat3<typename L::V>& R, typename L::Scala
 #endif
     if constexpr (!kContiguous) {
       if (count == L::width && is_soa_batch(layout)) {
-        int64_t base = 0;
-        switch (soa_move<L>(layout, first, base)) {
+        switch (soa_move<L>(layout, first)) {
           case SoaMove::kVector:
             for (int k = 0; k < 9; ++k) {
-              typename L::Scalar* entry = data + base + entry_offset(layout, k);
+              typename L::Scalar* entry = data + matrix_offset(layout, first) + entry_offset(layout, k);
               __builtin_prefetch(entry + kSoaPrefetchBlocks * L::width, 1);
               L::store(R.a[k], entry);
             }

@@ -94,11 +94,9 @@ const cpu::KernelTable& kernels(Isa isa) {
 }
 
 template <typename T>
-void fill_view(const MatrixBatch& batch, const T*& data, cpu::Layout& layout) {
+void fill_view(const MatrixBatch& batch, const T*& data, Layout& layout) {
   data = static_cast<const T*>(batch.data);
-  for (int d = 0; d < 3; ++d) layout.stride[d] = batch.stride[d];
-  layout.tile = batch.tile;
-  layout.tile_stride = batch.tile_stride;
+  layout = batch.layout;
 }
 
 WarmStartCount run_kernel(const cpu::KernelTable& table, const cpu::WarmStartArgs<float>& args) {

@@ -9,7 +9,6 @@
 // matrix lands in: every lane computes the same operations on its own matrix.
 #pragma once
 
-
 #include <algorithm>
 #include <atomic>
 #include <type_traits>

@@ -19,16 +19,6 @@
 namespace torchrot {
 namespace cpu {
 
-// Where the matrices of a batch are, in elements (MatrixBatch, without its
-// pointer): entry (r, c) of matrix i at matrix_offset(i) + r * stride[1] +
-// c * stride[2] (block_io.h), matrix_offset(i) = i * stride[0] or, tiled
-// (tile > 0), (i / tile) * tile_stride + (i % tile) * stride[0].
-struct Layout {
-  int64_t stride[3];
-  int64_t tile;
-  int64_t tile_stride;
-};
-
 // N matrices of 3x3 in any layout.
 template <typename T>
 struct BatchArgs {

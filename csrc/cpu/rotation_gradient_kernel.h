@@ -8,7 +8,6 @@
 // and write its 144 bytes.
 #pragma once
 
-
 #include <algorithm>
 
 #include "../kernel/rotation_gradient.h"
