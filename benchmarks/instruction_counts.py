@@ -52,6 +52,8 @@ def _cases(n: int) -> dict:
         "copy_ of M": lambda: buf.copy_(M),
         "one-step, contiguous, out=": lambda: fit(M, init, max_iter=1, out=out),
         "one-step, SoA views, out=": lambda: fit(M_soa, init_soa, max_iter=1, out=out_soa),
+        "warm-start check (out= calls), contiguous": lambda: torch.ops.torchrot._count_bad_warm_starts(init),
+        "warm-start check (out= calls), SoA views": lambda: torch.ops.torchrot._count_bad_warm_starts(init_soa),
         "converged from the warm start": lambda: fit(M, init, out=out),
         "cold uniform, max_iter=1": lambda: fit(U, max_iter=1, out=out),
         "cold uniform, max_iter=2": lambda: fit(U, max_iter=2, out=out),

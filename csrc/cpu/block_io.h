@@ -15,6 +15,8 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstring>
+#include <initializer_list>
+#include <type_traits>
 
 #include "../kernel/force_inline.h"
 #include "../kernel/lanes.h"
@@ -176,63 +178,110 @@ TORCHROT_INLINE SoaMove soa_move(const Layout& layout, int64_t first) {
   return SoaMove::kGather;
 }
 
+// How a loop moves its blocks, one instantiation of the loop per path: where
+// the out-of-line paths (which return a block through memory) merged with
+// the vector paths in one loop, GCC stored every block the vector paths
+// loaded to the stack and read it back (18 stores and 18 loads per one-step
+// block), so the kernels run their full blocks on a path of their own and
+// the tail block on kAny (run_block_paths).
+enum class BlockPath {
+  kTransposed,  // contiguous (N, 3, 3) layouts, full blocks: in-register transposition
+  kVectors,     // untiled structure of arrays (matrix stride 1), full blocks: plain vectors
+  kAny,         // any layout and count: tiled runs, gathers, tail blocks
+};
+
+// Whether a layout is contiguous (N, 3, 3).
+inline bool is_contiguous_batch(const Layout& layout) {
+  const int64_t* s = layout.stride;
+  return layout.tile == 0 && s[0] == 9 && s[1] == 3 && s[2] == 1;
+}
+
+// The path of the full blocks of a loop over these layouts (nulls skipped).
+inline BlockPath full_block_path(std::initializer_list<const Layout*> layouts) {
+  bool contiguous = true, vectors = true;
+  for (const Layout* layout : layouts) {
+    if (layout == nullptr) continue;
+    contiguous = contiguous && is_contiguous_batch(*layout);
+    vectors = vectors && layout->tile == 0 && is_soa_batch(*layout);
+  }
+  return contiguous ? BlockPath::kTransposed : vectors ? BlockPath::kVectors : BlockPath::kAny;
+}
+
+// Runs f(path, b, e) on [begin, end) (begin a multiple of L::width): its full
+// blocks with `path` (a std::integral_constant<BlockPath, ...>), the tail
+// block with kAny.
+template <typename L, typename F>
+TORCHROT_INLINE void run_block_paths(BlockPath path, int64_t begin, int64_t end, const F& f) {
+  using P = BlockPath;
+  const int64_t full_end = path == P::kAny ? end : begin + (end - begin) / L::width * L::width;
+  if (full_end > begin) {
+    switch (path) {
+      case P::kTransposed: f(std::integral_constant<P, P::kTransposed>{}, begin, full_end); break;
+      case P::kVectors: f(std::integral_constant<P, P::kVectors>{}, begin, full_end); break;
+      case P::kAny: f(std::integral_constant<P, P::kAny>{}, begin, full_end); break;
+    }
+  }
+  if (end > full_end) f(std::integral_constant<P, P::kAny>{}, full_end, end);
+}
+
 // Gathers `count` matrices starting at `first` into SoA lanes; missing lanes
-// of a tail block get the identity, a harmless input.
-template <typename L, bool kContiguous>
+// of a tail block get the identity, a harmless input. kTransposed and
+// kVectors take full blocks only.
+template <typename L, BlockPath kPath>
 TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, const Layout& layout,
                                                int64_t first, int count) {
+  constexpr bool kContiguous = kPath == BlockPath::kTransposed;
   Mat3<typename L::V> A;
   if constexpr (kernel::IsPaired<L>::value) {  // two half blocks
     using H = typename L::HalfLanes;
-    const Mat3<typename H::V> lo = load_block<H, kContiguous>(data, layout, first, std::min(count, H::width));
-    const Mat3<typename H::V> hi =
-        load_block<H, kContiguous>(data, layout, first + H::width, std::max(count - H::width, 0));
+    const Mat3<typename H::V> lo = load_block<H, kPath>(data, layout, first, std::min(count, H::width));
+    const Mat3<typename H::V> hi = load_block<H, kPath>(data, layout, first + H::width, std::max(count - H::width, 0));
     for (int k = 0; k < 9; ++k) A.a[k] = {lo.a[k], hi.a[k]};
     return A;
   } else if constexpr (L::width == 1) {  // the scalar path: one matrix, straight
     for (int k = 0; k < 9; ++k) A.a[k] = data[offset<kContiguous>(layout, first, k)];
     return A;
-  } else {
-    if constexpr (!kContiguous) {
-      if (count == L::width && is_soa_batch(layout)) {  // full block, SoA
-        switch (soa_move<L>(layout, first)) {
-          case SoaMove::kVector:  // plain vectors
-            for (int k = 0; k < 9; ++k) {
-              const typename L::Scalar* entry = data + matrix_offset(layout, first) + entry_offset(layout, k);
-              __builtin_prefetch(entry + kSoaPrefetchBlocks * L::width);
-              A.a[k] = L::load(entry);
-            }
-            return A;
-          case SoaMove::kRuns32:
-            if constexpr (L::width * sizeof(typename L::Scalar) > 32) {
-              return load_tiled_runs<L, 32 / sizeof(typename L::Scalar)>(data, layout, first);
-            }
-            break;
-          case SoaMove::kRuns16:
-            if constexpr (L::width * sizeof(typename L::Scalar) > 16) {
-              return load_tiled_runs<L, 16 / sizeof(typename L::Scalar)>(data, layout, first);
-            }
-            break;
-          case SoaMove::kGather:
-            break;
-        }
-      }
+  } else if constexpr (kPath == BlockPath::kVectors) {
+    for (int k = 0; k < 9; ++k) {
+      const typename L::Scalar* entry = data + matrix_offset(layout, first) + entry_offset(layout, k);
+      __builtin_prefetch(entry + kSoaPrefetchBlocks * L::width);
+      A.a[k] = L::load(entry);
     }
+    return A;
+  } else if constexpr (kPath == BlockPath::kTransposed) {
 #ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
-    if constexpr (kContiguous) {
-      if (count == L::width) {  // full contiguous block: in-register transposition
-        load_soa(data + 9 * first, A.a);
-        return A;
+    load_soa(data + 9 * first, A.a);
+    return A;
+#else
+    return gather_block<L, true>(data, layout, first, count);
+#endif
+  } else {
+    if (count == L::width && is_soa_batch(layout)) {  // full block, SoA
+      switch (soa_move<L>(layout, first)) {
+        case SoaMove::kVector:
+          return load_block<L, BlockPath::kVectors>(data, layout, first, count);
+        case SoaMove::kRuns32:
+          if constexpr (L::width * sizeof(typename L::Scalar) > 32) {
+            return load_tiled_runs<L, 32 / sizeof(typename L::Scalar)>(data, layout, first);
+          }
+          break;
+        case SoaMove::kRuns16:
+          if constexpr (L::width * sizeof(typename L::Scalar) > 16) {
+            return load_tiled_runs<L, 16 / sizeof(typename L::Scalar)>(data, layout, first);
+          }
+          break;
+        case SoaMove::kGather:
+          break;
       }
     }
-#endif
-    return gather_block<L, kContiguous>(data, layout, first, count);
+    return gather_block<L, false>(data, layout, first, count);
   }
 }
 
-template <typename L, bool kContiguous>
+template <typename L, BlockPath kPath>
 TORCHROT_INLINE void store_block(const Mat3<typename L::V>& R, typename L::Scalar* data, const Layout& layout,
                                  int64_t first, int count) {
+  constexpr bool kContiguous = kPath == BlockPath::kTransposed;
   if constexpr (kernel::IsPaired<L>::value) {
     using H = typename L::HalfLanes;
     Mat3<typename H::V> lo, hi;
@@ -240,51 +289,43 @@ TORCHROT_INLINE void store_block(const Mat3<typename L::V>& R, typename L::Scala
       lo.a[k] = R.a[k].lo;
       hi.a[k] = R.a[k].hi;
     }
-    store_block<H, kContiguous>(lo, data, layout, first, std::min(count, H::width));
-    if (count > H::width) store_block<H, kContiguous>(hi, data, layout, first + H::width, count - H::width);
+    store_block<H, kPath>(lo, data, layout, first, std::min(count, H::width));
+    if (count > H::width) store_block<H, kPath>(hi, data, layout, first + H::width, count - H::width);
   } else if constexpr (L::width == 1) {
     for (int k = 0; k < 9; ++k) data[offset<kContiguous>(layout, first, k)] = R.a[k];
-  } else {
+  } else if constexpr (kPath == BlockPath::kVectors) {
+    for (int k = 0; k < 9; ++k) {
+      typename L::Scalar* entry = data + matrix_offset(layout, first) + entry_offset(layout, k);
+      __builtin_prefetch(entry + kSoaPrefetchBlocks * L::width, 1);
+      L::store(R.a[k], entry);
+    }
+  } else if constexpr (kPath == BlockPath::kTransposed) {
 #ifdef TORCHROT_HAVE_SIMD_TRANSPOSE
-    if constexpr (kContiguous) {
-      if (count == L::width) {
-        store_soa(R.a, data + 9 * first);
-        return;
-      }
-    }
+    store_soa(R.a, data + 9 * first);
+#else
+    scatter_block<L, true>(R, data, layout, first, count);
 #endif
-    if constexpr (!kContiguous) {
-      if (count == L::width && is_soa_batch(layout)) {
-        switch (soa_move<L>(layout, first)) {
-          case SoaMove::kVector:
-            for (int k = 0; k < 9; ++k) {
-              typename L::Scalar* entry = data + matrix_offset(layout, first) + entry_offset(layout, k);
-              __builtin_prefetch(entry + kSoaPrefetchBlocks * L::width, 1);
-              L::store(R.a[k], entry);
-            }
-            return;
-          case SoaMove::kRuns32:
-            if constexpr (L::width * sizeof(typename L::Scalar) > 32) {
-              return store_tiled_runs<L, 32 / sizeof(typename L::Scalar)>(R, data, layout, first);
-            }
-            break;
-          case SoaMove::kRuns16:
-            if constexpr (L::width * sizeof(typename L::Scalar) > 16) {
-              return store_tiled_runs<L, 16 / sizeof(typename L::Scalar)>(R, data, layout, first);
-            }
-            break;
-          case SoaMove::kGather:
-            break;
-        }
+  } else {
+    if (count == L::width && is_soa_batch(layout)) {
+      switch (soa_move<L>(layout, first)) {
+        case SoaMove::kVector:
+          return store_block<L, BlockPath::kVectors>(R, data, layout, first, count);
+        case SoaMove::kRuns32:
+          if constexpr (L::width * sizeof(typename L::Scalar) > 32) {
+            return store_tiled_runs<L, 32 / sizeof(typename L::Scalar)>(R, data, layout, first);
+          }
+          break;
+        case SoaMove::kRuns16:
+          if constexpr (L::width * sizeof(typename L::Scalar) > 16) {
+            return store_tiled_runs<L, 16 / sizeof(typename L::Scalar)>(R, data, layout, first);
+          }
+          break;
+        case SoaMove::kGather:
+          break;
       }
     }
-    scatter_block<L, kContiguous>(R, data, layout, first, count);
+    scatter_block<L, false>(R, data, layout, first, count);
   }
-}
-
-inline bool is_contiguous_batch(const Layout& layout) {
-  const int64_t* s = layout.stride;
-  return layout.tile == 0 && s[0] == 9 && s[1] == 3 && s[2] == 1;
 }
 
 }  // namespace

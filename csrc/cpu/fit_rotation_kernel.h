@@ -129,7 +129,7 @@ inline void store_diagnostics(const kernel::LaneState<L>& s, int lane, const Bat
 // own, so that the block's state stays in registers from the loads to the
 // stores; measured on AVX2 in cache, contiguous one-step: float32 39.5 -> 36.0
 // ns/matrix, float64 82 -> 77).
-template <typename L, bool kContiguous, bool kOneStep, bool kCold>
+template <typename L, BlockPath kPath, bool kOneStep, bool kCold>
 int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end) {
   using T = typename L::Scalar;
   const bool converge = args.options.max_iter <= 0;
@@ -144,9 +144,9 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
     for (int64_t first = sub; first < sub_end; first += L::width) {
       const int count = static_cast<int>(std::min<int64_t>(L::width, sub_end - first));
       // Both inputs are in registers before `out` is written: out may alias them.
-      const Mat3<typename L::V> M = load_block<L, kContiguous>(args.M, args.m_layout, first, count);
+      const Mat3<typename L::V> M = load_block<L, kPath>(args.M, args.m_layout, first, count);
       Mat3<typename L::V> R0;
-      if constexpr (!kCold) R0 = load_block<L, kContiguous>(args.init, args.init_layout, first, count);
+      if constexpr (!kCold) R0 = load_block<L, kPath>(args.init, args.init_layout, first, count);
       // Cold starts' first step takes the maximal objective as its estimate.
       typename L::V objective;
       kernel::LaneState<L> s = kernel::begin_fit<L>(M, kCold ? nullptr : &R0, args.options.init_known_clean,
@@ -157,7 +157,7 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
         kernel::advance<L, kCold>(s, args.options, first_budget, kCold ? &objective : nullptr);
       }
       // Lanes still running get a provisional result, replaced in a later pass.
-      store_block<L, kContiguous>(kernel::finish<L>(s), args.out, args.out_layout, first, count);
+      store_block<L, kPath>(kernel::finish<L>(s), args.out, args.out_layout, first, count);
       if (!kCold && L::any(s.bad_init)) {
         for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
       }
@@ -189,7 +189,9 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
         for (int j = 0; j < count; ++j) {
           const int64_t index = indices[j];
           if (L::lane_set(s.running, j)) continue;
-          for (int k = 0; k < 9; ++k) args.out[offset<kContiguous>(args.out_layout, index, k)] = entries[k][j];
+          for (int k = 0; k < 9; ++k) {
+            args.out[offset<kPath == BlockPath::kTransposed>(args.out_layout, index, k)] = entries[k][j];
+          }
           if (diagnostics) store_diagnostics<L>(s, j, args, index);
         }
       }
@@ -201,16 +203,17 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
 
 template <typename L>
 int64_t fit_batch(const BatchArgs<typename L::Scalar>& args) {
-  const bool contiguous = is_contiguous_batch(args.m_layout) && is_contiguous_batch(args.out_layout) &&
-                          (args.init == nullptr || is_contiguous_batch(args.init_layout));
+  const BlockPath path =
+      full_block_path({&args.m_layout, &args.out_layout, args.init == nullptr ? nullptr : &args.init_layout});
   std::atomic<int64_t> bad_inits{0};
   // One instantiation per case, so that each loop is compiled for its own
   // (measured: warm one-step fits took 2.4 (AVX-512) and 4.1 (AVX2) more
   // instructions per matrix in one loop with the cold start's code).
   const auto run = [&](auto one_step, auto cold) {
     parallel_blocks(args.n, L::width, kGrainSize, [&](int64_t begin, int64_t end) {
-      bad_inits += contiguous ? fit_range<L, true, one_step.value, cold.value>(args, begin, end)
-                              : fit_range<L, false, one_step.value, cold.value>(args, begin, end);
+      run_block_paths<L>(path, begin, end, [&](auto block_path, int64_t b, int64_t e) {
+        bad_inits += fit_range<L, block_path.value, one_step.value, cold.value>(args, b, e);
+      });
     });
   };
   const bool one_step = args.options.max_iter == 1, cold = args.init == nullptr;
@@ -231,23 +234,24 @@ template <typename L>
 WarmStartCount count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& args) {
   using T = typename L::Scalar;
   using V = typename L::V;
-  const bool contiguous = is_contiguous_batch(args.layout);
+  const BlockPath path = full_block_path({&args.layout});
   std::atomic<int64_t> bad{0}, unclean{0};
   parallel_blocks(args.n, L::width, kGrainSize, [&](int64_t begin, int64_t end) {
     int64_t local_bad = 0, local_unclean = 0;
-    for (int64_t first = begin; first < end; first += L::width) {
-      const int count = static_cast<int>(std::min<int64_t>(L::width, end - first));
-      const Mat3<V> R0 = contiguous ? load_block<L, true>(args.init, args.layout, first, count)
-                                    : load_block<L, false>(args.init, args.layout, first, count);
-      const kernel::WarmStartCheck<L> check = kernel::check_warm_start<L>(R0);
-      const typename L::Mask clean = kernel::used_as_is<L>(check, kernel::Tolerances<T>::init_clean);
-      if (!L::all(clean)) {
-        for (int j = 0; j < count; ++j) {
-          local_bad += L::lane_set(check.bad, j);
-          local_unclean += !L::lane_set(clean, j);
+    run_block_paths<L>(path, begin, end, [&](auto block_path, int64_t b, int64_t e) {
+      for (int64_t first = b; first < e; first += L::width) {
+        const int count = static_cast<int>(std::min<int64_t>(L::width, e - first));
+        const Mat3<V> R0 = load_block<L, block_path.value>(args.init, args.layout, first, count);
+        const kernel::WarmStartCheck<L> check = kernel::check_warm_start<L>(R0);
+        const typename L::Mask clean = kernel::used_as_is<L>(check, kernel::Tolerances<T>::init_clean);
+        if (!L::all(clean)) {
+          for (int j = 0; j < count; ++j) {
+            local_bad += L::lane_set(check.bad, j);
+            local_unclean += !L::lane_set(clean, j);
+          }
         }
       }
-    }
+    });
     bad += local_bad;
     unclean += local_unclean;
   });

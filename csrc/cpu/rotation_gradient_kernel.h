@@ -21,29 +21,25 @@ namespace {
 
 constexpr int64_t kTangentGrainSize = 4096;
 
-template <typename L, bool kContiguous>
+template <typename L, BlockPath kPath>
 void tangent_range(const TangentArgs<typename L::Scalar>& args, int64_t begin, int64_t end) {
   for (int64_t first = begin; first < end; first += L::width) {
     const int count = static_cast<int>(std::min<int64_t>(L::width, end - first));
     // All inputs are in registers before `out` is written: out may alias X.
-    const Mat3<typename L::V> X = load_block<L, kContiguous>(args.X, args.x_layout, first, count);
-    const Mat3<typename L::V> R = load_block<L, kContiguous>(args.R, args.r_layout, first, count);
-    const Mat3<typename L::V> M = load_block<L, kContiguous>(args.M, args.m_layout, first, count);
-    store_block<L, kContiguous>(kernel::rotation_tangent<L>(X, R, M, args.damping), args.out, args.out_layout,
+    const Mat3<typename L::V> X = load_block<L, kPath>(args.X, args.x_layout, first, count);
+    const Mat3<typename L::V> R = load_block<L, kPath>(args.R, args.r_layout, first, count);
+    const Mat3<typename L::V> M = load_block<L, kPath>(args.M, args.m_layout, first, count);
+    store_block<L, kPath>(kernel::rotation_tangent<L>(X, R, M, args.damping), args.out, args.out_layout,
                                 first, count);
   }
 }
 
 template <typename L>
 void tangent_batch(const TangentArgs<typename L::Scalar>& args) {
-  const bool contiguous = is_contiguous_batch(args.x_layout) && is_contiguous_batch(args.r_layout) &&
-                          is_contiguous_batch(args.m_layout) && is_contiguous_batch(args.out_layout);
+  const BlockPath path = full_block_path({&args.x_layout, &args.r_layout, &args.m_layout, &args.out_layout});
   parallel_blocks(args.n, L::width, kTangentGrainSize, [&](int64_t begin, int64_t end) {
-    if (contiguous) {
-      tangent_range<L, true>(args, begin, end);
-    } else {
-      tangent_range<L, false>(args, begin, end);
-    }
+    run_block_paths<L>(path, begin, end,
+                       [&](auto block_path, int64_t b, int64_t e) { tangent_range<L, block_path.value>(args, b, e); });
   });
 }
 
