@@ -69,8 +69,8 @@ inline bool is_soa_batch(const Layout& layout) { return layout.stride[0] == 1; }
 // more than the hardware prefetchers follow); the contiguous paths every
 // cache line of the block's 9 W values: measured, float32, N = 1e6, 1
 // thread, in hours when this VM's hardware prefetchers left the contiguous
-// loops waiting on memory (their data in cache, and copy_, torch.sum and the
-// SoA paths, ran as fast as in other hours): without it the warm-start check
+// loops waiting on memory (in cache they ran as in other hours, and so did
+// copy_, torch.sum and the SoA paths at N = 1e6): without it the warm-start check
 // of contiguous init took 6.6-8.8 ns/matrix, the one-step 12.7-13.1 and the
 // converged warm fit 17.6-19.0, with it 1.6-1.8, 7.5-7.9 and 12.2-12.4, as
 // in the other hours, when it changes nothing.
@@ -249,7 +249,8 @@ TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, c
   if constexpr (kernel::IsPaired<L>::value) {  // two half blocks
     using H = typename L::HalfLanes;
     const Mat3<typename H::V> lo = load_block<H, kPath>(data, layout, first, std::min(count, H::width));
-    const Mat3<typename H::V> hi = load_block<H, kPath>(data, layout, first + H::width, std::max(count - H::width, 0));
+    const Mat3<typename H::V> hi =
+        load_block<H, kPath>(data, layout, first + H::width, std::max(count - H::width, 0));
     for (int k = 0; k < 9; ++k) A.a[k] = {lo.a[k], hi.a[k]};
     return A;
   } else if constexpr (L::width == 1) {  // the scalar path: one matrix, straight
