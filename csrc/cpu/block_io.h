@@ -67,13 +67,10 @@ inline bool is_soa_batch(const Layout& layout) { return layout.stride[0] == 1; }
 // Blocks ahead that the vector paths prefetch. The SoA paths prefetch each
 // of their nine entry streams per tensor (M, init and out make 27 streams,
 // more than the hardware prefetchers follow); the contiguous paths every
-// cache line of the block's 9 W values: measured, float32, N = 1e6, 1
-// thread, in hours when this VM's hardware prefetchers left the contiguous
-// loops waiting on memory (in cache they ran as in other hours, and so did
-// copy_, torch.sum and the SoA paths at N = 1e6): without it the warm-start check
-// of contiguous init took 6.6-8.8 ns/matrix, the one-step 12.7-13.1 and the
-// converged warm fit 17.6-19.0, with it 1.6-1.8, 7.5-7.9 and 12.2-12.4, as
-// in the other hours, when it changes nothing.
+// cache line of the block's 9 W values, for the hours when this VM's
+// hardware prefetchers left the contiguous loops waiting on memory at
+// N = 1e6 (2-3x slower then; in other hours the prefetch changes nothing:
+// measured in benchmarks/README.md, "Fewer instructions").
 constexpr int64_t kPrefetchBlocks = 4;
 
 template <typename L, int kWrite>
