@@ -17,21 +17,15 @@
 // 64 matrices.) The derivative is the optimality-condition tangent of
 // csrc/kernel/rotation_gradient.h, the operator torchrot::fit_rotation_backward.
 
-// torch's autograd headers use C++20 bit-field initialisers (a warning in C++17).
-#pragma GCC diagnostic push
-#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12
-#pragma GCC diagnostic ignored "-Wc++20-extensions"
-#endif
 #include <ATen/ATen.h>
-#include <c10/core/AutogradState.h>
-#include <c10/core/impl/LocalDispatchKeySet.h>
 #include <torch/csrc/autograd/custom_function.h>
 #include <torch/library.h>
-#pragma GCC diagnostic pop
 
 #include <optional>
 
+#include "messages.h"
 #include "operators.h"
+#include "torch_internals.h"
 
 namespace torchrot {
 namespace {
@@ -84,19 +78,13 @@ struct FitRotationAutograd : public torch::autograd::Function<FitRotationAutogra
   }
 };
 
-// Whether a torch.func transform is active, as torch._C._are_functorch_transforms_active
-// tells it: functorch includes its dynamic-layer keys while it has a level.
-bool functorch_transforms_active() {
-  const c10::DispatchKeySet included = c10::impl::tls_local_dispatch_key_set().included_;
-  return included.has(c10::DispatchKey::FuncTorchDynamicLayerFrontMode) ||
-         included.has(c10::DispatchKey::FuncTorchDynamicLayerBackMode);
-}
+using torch_internals::functorch_transforms_active;
 
 // Whether forward mode records a tangent for `tensor` (outside torch.func,
 // forward AD opens level 0 only; a dual level open around tensors without
 // tangents records nothing, in either kernel).
 bool has_tangent(const at::Tensor& tensor) {
-  return c10::AutogradState::get_tls_state().get_fw_grad_mode() && tensor._fw_grad(/*level=*/0).defined();
+  return torch_internals::forward_grad_mode_enabled() && tensor._fw_grad(/*level=*/0).defined();
 }
 
 bool records_reverse(const at::Tensor& tensor) { return at::GradMode::is_enabled() && tensor.requires_grad(); }
@@ -154,11 +142,62 @@ at::Tensor fit_rotation_backward_autograd(c10::DispatchKeySet keys, const at::Te
   return fit_rotation_backward_op().redispatch(keys & c10::after_autograd_keyset, grad, R, M, gradient_eps);
 }
 
+// ---- fit_rotation_out and fit_rotation_info: not differentiable ----
+//
+// fit_rotation_out writes `out` in place, as torch's out= operators do, and
+// follows their rules: it records no derivative and refuses a call that
+// would need one (M or out requiring grad in grad mode, or carrying a
+// forward-mode tangent; torch.func transforms reach here with their wrapped
+// tensors, which do); its ADInplaceOrView kernel bumps out's version counter
+// once out is written, so that autograd refuses to differentiate through
+// values it overwrote (a saved R, say); an inference tensor is written only
+// in inference mode (checked with the other arguments, before anything is
+// written: ops.cpp's check_out, torchrot/_checks.py). No gradient flows to
+// init, so an init that requires grad is allowed, as in fit_rotation.
+
+bool out_needs_derivative(const at::Tensor& M, const at::Tensor& out) {
+  return records_reverse(M) || records_reverse(out) || has_tangent(M) || has_tangent(out);
+}
+
+void fit_rotation_out_autograd(c10::DispatchKeySet keys, const at::Tensor& M, const std::optional<at::Tensor>& init,
+                               std::optional<int64_t> max_iter, c10::string_view variant, const at::Tensor& out) {
+  TORCH_CHECK_VALUE(!out_needs_derivative(M, out), messages::kOpName, messages::kOutAutograd);
+  static const auto op = find_operator<FitRotationOutSignature>("torchrot::fit_rotation_out");
+  at::AutoDispatchBelowAutograd below;
+  op.redispatch(keys & c10::after_autograd_keyset, M, init, max_iter, variant, out);
+}
+
+void fit_rotation_out_inplace(c10::DispatchKeySet keys, const at::Tensor& M, const std::optional<at::Tensor>& init,
+                              std::optional<int64_t> max_iter, c10::string_view variant, const at::Tensor& out) {
+  static const auto op = find_operator<FitRotationOutSignature>("torchrot::fit_rotation_out");
+  {
+    at::AutoDispatchBelowADInplaceOrView below;
+    op.redispatch(keys & c10::after_ADInplaceOrView_keyset, M, init, max_iter, variant, out);
+  }
+  out.unsafeGetTensorImpl()->bump_version();
+}
+
+// fit_rotation_info's outputs carry no gradient (R, iterations and status
+// are diagnostics): below autograd on every call, so they never require grad.
+std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_autograd(
+    c10::DispatchKeySet keys, const at::Tensor& M, const std::optional<at::Tensor>& init,
+    std::optional<int64_t> max_iter, c10::string_view variant) {
+  static const auto op = find_operator<FitRotationInfoSignature>("torchrot::fit_rotation_info");
+  at::AutoDispatchBelowADInplaceOrView below;
+  return op.redispatch(keys & c10::after_ADInplaceOrView_keyset, M, init, max_iter, variant);
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(torchrot, Autograd, m) {
   m.impl("fit_rotation", TORCH_FN(fit_rotation_autograd));
   m.impl("fit_rotation_backward", TORCH_FN(fit_rotation_backward_autograd));
+  m.impl("fit_rotation_out", TORCH_FN(fit_rotation_out_autograd));
+  m.impl("fit_rotation_info", TORCH_FN(fit_rotation_info_autograd));
+}
+
+TORCH_LIBRARY_IMPL(torchrot, ADInplaceOrView, m) {
+  m.impl("fit_rotation_out", TORCH_FN(fit_rotation_out_inplace));
 }
 
 }  // namespace torchrot

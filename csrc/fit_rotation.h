@@ -80,7 +80,7 @@ int64_t fit_rotation_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& M, 
 struct WarmStartCount {
   int64_t bad = 0;      // finite but not rotations (limits::kInitTolerance, det <= 0): the call raises
   int64_t unclean = 0;  // not finite, not rotations, or rotations the fit first cleans up
-                        // (deviation >= limits::kInitClean*, see kernel::clean_warm_start)
+                        // (deviation >= limits::kInitCleanEps eps, see kernel::clean_warm_start)
 };
 
 // The check of n warm starts, without fitting (NaN/Inf ones are data, not errors).

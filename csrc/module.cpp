@@ -1,26 +1,25 @@
 // Makes the shared library importable as torchrot._C. Importing it runs the
 // static initialisers of ops.cpp, which register torch.ops.torchrot.*. Its
-// Python functions: constants() hands the limits of limits.h to the Python
+// Python functions: constants() hands the limits of limits.h, the status
+// codes of fit_rotation.h and the messages of messages.h to the Python
 // layers (torchrot/_limits.py), so that they are defined once;
 // fit_rotation_eager() is the plain eager call of torchrot.fit_rotation.
 #include <Python.h>
 
-// torch's autograd headers use C++20 bit-field initialisers (a warning in C++17).
-#pragma GCC diagnostic push
-#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12
-#pragma GCC diagnostic ignored "-Wc++20-extensions"
-#endif
-#include <ATen/PythonTorchFunctionTLS.h>
 #include <torch/csrc/Exceptions.h>
 #include <torch/csrc/autograd/python_variable.h>
 #include <pybind11/pybind11.h>
-#pragma GCC diagnostic pop
 
 #include <cstdint>
+#include <initializer_list>
 #include <optional>
+#include <utility>
 
+#include "fit_rotation.h"
 #include "limits.h"
+#include "messages.h"
 #include "operators.h"
+#include "torch_internals.h"
 
 namespace {
 
@@ -31,16 +30,49 @@ bool set_item(PyObject* dict, const char* key, PyObject* value) {
   return failed == 0;
 }
 
+// {key: value} of Python objects made by `make` from each value; null on error.
+template <class Value, class Make>
+PyObject* dict_of(std::initializer_list<std::pair<const char*, Value>> items, Make make) {
+  PyObject* dict = PyDict_New();
+  if (dict == nullptr) return nullptr;
+  for (const auto& [key, value] : items) {
+    if (!set_item(dict, key, make(value))) {
+      Py_DECREF(dict);
+      return nullptr;
+    }
+  }
+  return dict;
+}
+
+PyObject* status_codes() {
+  using torchrot::FitStatus;
+  const auto code = [](FitStatus status) { return PyLong_FromLong(static_cast<long>(status)); };
+  return dict_of<FitStatus>({{"CAYLEY", FitStatus::kCayley},
+                             {"FALLBACK", FitStatus::kFallback},
+                             {"BAD_INIT", FitStatus::kBadInit},
+                             {"NON_FINITE", FitStatus::kNonFinite}},
+                            code);
+}
+
+PyObject* messages() {
+  using namespace torchrot::messages;
+  return dict_of<const char*>({{"OP_NAME", kOpName},
+                               {"BACKWARD_NAME", kBackwardName},
+                               {"OUT_AUTOGRAD", kOutAutograd},
+                               {"OUT_INFERENCE", kOutInference}},
+                              PyUnicode_FromString);
+}
+
 PyObject* constants(PyObject*, PyObject*) {
   using namespace torchrot::limits;
   PyObject* dict = PyDict_New();
   if (dict == nullptr) return nullptr;
-  const bool ok = set_item(dict, "DEFAULT_GRADIENT_EPS", PyFloat_FromDouble(kDefaultGradientEps)) &&
+  const bool ok = set_item(dict, "FIT_STATUS", status_codes()) && set_item(dict, "MESSAGES", messages()) &&
+                  set_item(dict, "DEFAULT_GRADIENT_EPS", PyFloat_FromDouble(kDefaultGradientEps)) &&
                   set_item(dict, "MAX_GRADIENT_EPS", PyFloat_FromDouble(kMaxGradientEps)) &&
                   set_item(dict, "MAX_ITER", PyLong_FromLongLong(kMaxIter)) &&
                   set_item(dict, "INIT_TOLERANCE", PyFloat_FromDouble(kInitTolerance)) &&
-                  set_item(dict, "INIT_CLEAN_FLOAT", PyFloat_FromDouble(kInitCleanFloat)) &&
-                  set_item(dict, "INIT_CLEAN_DOUBLE", PyFloat_FromDouble(kInitCleanDouble)) &&
+                  set_item(dict, "INIT_CLEAN_EPS", PyFloat_FromDouble(kInitCleanEps)) &&
                   set_item(dict, "INIT_CLEAN_STEPS", PyLong_FromLong(kInitCleanSteps)) &&
                   set_item(dict, "UNDAMPED_FLOAT", PyFloat_FromDouble(kUndampedFloat)) &&
                   set_item(dict, "UNDAMPED_DOUBLE", PyFloat_FromDouble(kUndampedDouble)) &&
@@ -74,7 +106,7 @@ PyObject* fit_rotation_eager(PyObject*, PyObject* const* args, Py_ssize_t nargs)
   HANDLE_TH_ERRORS
   if (nargs != 6 || !THPVariable_CheckExact(args[0]) || (args[1] != Py_None && !THPVariable_CheckExact(args[1])) ||
       (args[2] != Py_None && !PyLong_CheckExact(args[2])) || !PyUnicode_Check(args[3]) ||
-      (args[5] != Py_None && !THPVariable_CheckExact(args[5])) || at::impl::torch_function_mode_enabled()) {
+      (args[5] != Py_None && !THPVariable_CheckExact(args[5])) || torchrot::torch_internals::torch_function_mode_enabled()) {
     Py_RETURN_NOTIMPLEMENTED;
   }
   std::optional<int64_t> max_iter;
@@ -114,7 +146,8 @@ PyObject* fit_rotation_eager(PyObject*, PyObject* const* args, Py_ssize_t nargs)
 }
 
 PyMethodDef methods[] = {
-    {"constants", constants, METH_NOARGS, "The limits, defaults and tolerances of csrc/limits.h, by name."},
+    {"constants", constants, METH_NOARGS,
+     "The limits, defaults and tolerances of csrc/limits.h, the status codes and the shared messages, by name."},
     {"fit_rotation_eager", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(fit_rotation_eager)),
      METH_FASTCALL, "torchrot::fit_rotation(_out) for torchrot.fit_rotation's plain eager call."},
     {nullptr, nullptr, 0, nullptr},

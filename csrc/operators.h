@@ -8,18 +8,22 @@
 
 #include <cstdint>
 #include <optional>
+#include <tuple>
 
 namespace torchrot {
 
 // The C++ signatures of the schemas torchrot::fit_rotation (M, init,
 // max_iter, variant, gradient_eps), torchrot::fit_rotation_backward (grad,
-// R, M, gradient_eps) and torchrot::fit_rotation_out (M, init, max_iter,
-// variant, out), for typed dispatcher calls.
+// R, M, gradient_eps), torchrot::fit_rotation_out (M, init, max_iter,
+// variant, out) and torchrot::fit_rotation_info (M, init, max_iter, variant),
+// for typed dispatcher calls.
 using FitRotationSignature = at::Tensor(const at::Tensor&, const std::optional<at::Tensor>&, std::optional<int64_t>,
                                         c10::string_view, double);
 using FitRotationBackwardSignature = at::Tensor(const at::Tensor&, const at::Tensor&, const at::Tensor&, double);
 using FitRotationOutSignature = void(const at::Tensor&, const std::optional<at::Tensor>&, std::optional<int64_t>,
                                      c10::string_view, const at::Tensor&);
+using FitRotationInfoSignature = std::tuple<at::Tensor, at::Tensor, at::Tensor>(
+    const at::Tensor&, const std::optional<at::Tensor>&, std::optional<int64_t>, c10::string_view);
 
 // The operator `name` ("torchrot::fit_rotation", ...), typed; throws if it
 // is not registered or its schema does not match Signature. Callers keep

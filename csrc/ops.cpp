@@ -7,6 +7,7 @@
 #include <ATen/ExpandUtils.h>
 #include <ATen/MemoryOverlap.h>
 #include <ATen/TensorUtils.h>
+#include <c10/core/InferenceMode.h>
 #include <torch/library.h>
 
 #include <algorithm>
@@ -20,6 +21,7 @@
 #include "cpu/huge_pages.h"
 #include "fit_rotation.h"
 #include "limits.h"
+#include "messages.h"
 
 namespace torchrot {
 namespace {
@@ -29,8 +31,8 @@ namespace {
 // TypeError (TORCH_CHECK_TYPE) for a wrong type or dtype, ValueError
 // (TORCH_CHECK_VALUE) for a wrong value, shape or device. Limits and defaults
 // come from limits.h.
-constexpr const char* kOpName = "torchrot.fit_rotation";
-constexpr const char* kBackwardName = "torchrot.fit_rotation_backward";
+using messages::kBackwardName;
+using messages::kOpName;
 
 // A dtype as Python prints it ("torch.float32").
 std::string dtype_name(at::ScalarType t) { return "torch." + std::string(c10::getDtypeNames(t).first); }
@@ -130,6 +132,7 @@ void check_out(const at::Tensor& M, const at::Tensor& out) {
                     out.sizes());
   TORCH_CHECK_VALUE(!has_overlapping_elements(out), kOpName,
                     ": out must not have overlapping elements (e.g. an expanded tensor)");
+  TORCH_CHECK_VALUE(!out.is_inference() || c10::InferenceMode::is_enabled(), kOpName, messages::kOutInference);
 }
 
 void check_gradient_eps(double gradient_eps, const char* op_name) {

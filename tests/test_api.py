@@ -362,3 +362,34 @@ def test_good_init_within_tolerance_accepted(dtype):
         else:
             with pytest.raises(ValueError, match="init must hold rotations"):
                 torchrot.fit_rotation(M, init.to(dtype), max_iter=1)
+
+
+def test_status_codes_are_one_enum():
+    """FitStatus (defined in C++, csrc/fit_rotation.h) names the codes that
+    fit_rotation_info reports, on the C++ kernel and the generic path."""
+    assert {s.name: int(s) for s in torchrot.FitStatus} == {"CAYLEY": 0, "FALLBACK": 1, "BAD_INIT": 2, "NON_FINITE": 3}
+    M = make_matrices("rank1", 64, 46, torch.float64)
+    M[5, 0, 0] = float("nan")
+    for info in (torchrot.fit_rotation_info(M), torchrot.FitInfo(*torchrot.fit_rotation_reference(M, return_info=True))):
+        assert info.status[5] == torchrot.FitStatus.NON_FINITE
+        assert (info.status == torchrot.FitStatus.FALLBACK).any()  # rank 1: no isolated maximum
+        assert set(info.status.unique().tolist()) <= {int(s) for s in torchrot.FitStatus}
+
+
+def test_gradient_eps_default_is_one_sentinel():
+    """fit_rotation and nn.RotationFit share one default (None: torchrot's
+    DEFAULT_GRADIENT_EPS), told apart by None, not by float identity: a
+    float equal to the default is the default, however it was made."""
+    import inspect
+
+    assert inspect.signature(torchrot.fit_rotation).parameters["gradient_eps"].default is None
+    assert inspect.signature(torchrot.nn.RotationFit).parameters["gradient_eps"].default is None
+    M = make_matrices("gaussian", 8, 47, torch.float64).requires_grad_()
+    grads = []
+    for eps in (None, torchrot.DEFAULT_GRADIENT_EPS, float("1e-6"), 1e-3):
+        (g,) = torch.autograd.grad(torchrot.fit_rotation(M, gradient_eps=eps).sum(), M)
+        grads.append(g)
+        (g_layer,) = torch.autograd.grad(torchrot.nn.RotationFit(gradient_eps=eps)(M).sum(), M)
+        assert torch.equal(g, g_layer)
+    assert torch.equal(grads[0], grads[1]) and torch.equal(grads[0], grads[2])
+    assert not torch.equal(grads[0], grads[3])  # a value of one's own is used

@@ -17,6 +17,7 @@ from torch.func import grad, jacfwd, jacrev, jvp, vmap
 
 import torchrot
 from torchrot._limits import GRADIENT_EPS
+from torchrot._torch_private import below_autograd
 from torchrot.reference import fit_rotation_backward_reference
 from torchrot.testing import (
     dtype_id,
@@ -467,7 +468,7 @@ def test_operator_calls_run_no_python_unless_a_transform_or_tangent_needs_it():
     calls with a tangent."""
     M, init = make_warm_start("warm", 9, seed=9, dtype=torch.float64)
     G = make_matrices("gaussian", 9, seed=10, dtype=torch.float64)
-    with torch._C._AutoDispatchBelowAutograd():
+    with below_autograd():
         R = op.fit_rotation(M, init)
         tangent = op.fit_rotation_backward(G, R, M)
     quiet = {

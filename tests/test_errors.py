@@ -30,6 +30,11 @@ R = torchrot.fit_rotation(M)
 DOCS = pathlib.Path(__file__).resolve().parents[1] / "docs" / "errors.md"
 
 
+def _inference_tensor(like):
+    with torch.inference_mode():
+        return torch.empty_like(like)
+
+
 def _backward(grad=R, R_=R, M_=M, eps=1e-6):
     return op.fit_rotation_backward(grad, R_, M_, eps)
 
@@ -82,6 +87,10 @@ CASES = {
                             r"\bout\b must not have overlapping elements"),
     "fit-out-requires-grad": (lambda: torchrot.fit_rotation(M.clone().requires_grad_(), out=torch.empty_like(M)),
                               ValueError, r"out= does not support automatic differentiation"),
+    "fit-out-is-leaf-requiring-grad": (lambda: torchrot.fit_rotation(M, out=torch.empty_like(M).requires_grad_()),
+                                       ValueError, r"out= does not support automatic differentiation"),
+    "op-out-inference": (lambda: op.fit_rotation_out(M, None, None, "newton", _inference_tensor(M)), ValueError,
+                         r"\bout\b is an inference tensor.*inside torch\.inference_mode\(\)"),
     # fit_rotation_backward
     "backward-grad-none": (lambda: _backward(grad=None), TypeError, r"\bgrad\b must be a torch.Tensor, got NoneType"),
     "backward-R-none": (lambda: _backward(R_=None), TypeError, r"\bR\b must be a torch.Tensor, got NoneType"),

@@ -15,6 +15,7 @@ import torch
 
 import torchrot
 from torchrot import generic
+from torchrot._torch_private import compile_errors
 from torchrot.reference import fit_rotation_backward_reference
 from torchrot.testing import (
     DISTRIBUTIONS,
@@ -243,11 +244,14 @@ def test_escapes_and_fallbacks_match_kernel(assert_meets_criteria):
 
 
 def test_failed_compile_falls_back_to_eager(monkeypatch):
-    """Where torch.compile fails (e.g. no Triton for the device), the device
-    runs the algorithm eagerly from then on, after one RuntimeWarning."""
+    """Where torch.compile fails (e.g. no Triton for the device: torch reports
+    that with an exception of its compiler's), the device runs the algorithm
+    eagerly from then on, after one RuntimeWarning."""
+    compile_error = compile_errors()[0]
+
     def broken_compile(fn, **kwargs):
         def compiled(*args):
-            raise RuntimeError("no backend for this device")
+            raise compile_error("no backend for this device")
         return compiled
 
     monkeypatch.setattr(generic, "COMPILED_DEVICE_TYPES", frozenset({"cpu"}))
@@ -261,3 +265,29 @@ def test_failed_compile_falls_back_to_eager(monkeypatch):
         warnings.simplefilter("error", RuntimeWarning)
         assert torch.equal(torchrot.fit_rotation_reference(M), R)
     assert generic._compiled_cores["cpu"] is generic._fit_core
+
+
+@pytest.mark.parametrize("error", [RuntimeError("CUDA out of memory"), ValueError("a bug"), MemoryError()],
+                         ids=lambda e: type(e).__name__)
+def test_runtime_errors_of_the_compiled_path_propagate(error, monkeypatch):
+    """Only compile failures switch a device to eager: an error raised while
+    the compiled code runs (out of memory, a bug) reaches the caller as
+    itself, and the next call runs compiled again."""
+    calls = []
+
+    def failing_compile(fn, **kwargs):
+        def compiled(*args):
+            calls.append(args)
+            raise error
+        return compiled
+
+    monkeypatch.setattr(generic, "COMPILED_DEVICE_TYPES", frozenset({"cpu"}))
+    monkeypatch.setattr(generic, "_compiled_cores", {})
+    monkeypatch.setattr(generic.torch, "compile", failing_compile)
+    M = make_matrices("gaussian", 64, 45, torch.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # no fallback warning
+        for _ in range(2):
+            with pytest.raises(type(error)):
+                torchrot.fit_rotation_reference(M)
+    assert len(calls) == 2 and generic._compiled_cores["cpu"] is not generic._fit_core

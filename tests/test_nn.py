@@ -92,8 +92,8 @@ def test_gradient_eps_default_applies_unless_set(monkeypatch):
     RotationFit(gradient_eps=1e-4)(M)
     assert seen[-1]["gradient_eps"] == 1e-4
     RotationFit()(M)
-    # the library default itself (fit_rotation tells it apart by identity)
-    assert seen[-1].get("gradient_eps", GRADIENT_EPS) is GRADIENT_EPS
+    # fit_rotation's own default (None: torchrot.DEFAULT_GRADIENT_EPS), the one sentinel both share
+    assert seen[-1].get("gradient_eps") is None
 
 
 @pytest.mark.parametrize("shape", [(3,), (4, 3), (2, 3, 4), (8,), (10,)], ids=str)

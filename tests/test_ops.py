@@ -70,6 +70,30 @@ def test_opcheck_fit_rotation_out(args):
     torch.library.opcheck(op.fit_rotation_out.default, args + (torch.empty_like(M),))
 
 
+#: Samples whose tensors are made to require grad (opcheck then also checks
+#: that an Autograd kernel is registered and that the derivatives trace).
+GRAD_SAMPLES = [(i, a) for i, a in SAMPLES if i in (
+    "unbatched", "batch_f32", "init_max_iter_1", "init_converged", "init_broadcast", "transposed", "float16")]
+
+
+def _requiring_grad(t):
+    return None if t is None else t.detach().clone().requires_grad_()
+
+
+@pytest.mark.parametrize("args", [a for _, a in GRAD_SAMPLES], ids=[i for i, _ in GRAD_SAMPLES])
+def test_opcheck_with_requires_grad(args):
+    """M requires grad: fit_rotation records its derivative, fit_rotation_info
+    records none (its outputs never require grad); fit_rotation_out, which
+    refuses an M or out that requires grad in grad mode (as torch's out=
+    operators), takes an init that does (no gradient flows to init)."""
+    M, init, max_iter, variant = args
+    torch.library.opcheck(op.fit_rotation.default, (_requiring_grad(M), init, max_iter, variant))
+    torch.library.opcheck(op.fit_rotation_info.default, (_requiring_grad(M), init, max_iter, variant))
+    if init is not None:
+        out = torch.empty(M.shape, dtype=M.dtype)
+        torch.library.opcheck(op.fit_rotation_out.default, (M, _requiring_grad(init), max_iter, variant, out))
+
+
 def test_opcheck_fit_rotation_out_non_contiguous():
     M = make_matrices("rot60", 6, 5, torch.float32)
     out = torch.empty(3, 3, 6).permute(2, 0, 1)

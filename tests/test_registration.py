@@ -232,10 +232,80 @@ def test_init_is_forwarded_as_warm_start(monkeypatch):
     assert_close(warm.R, cold.R, 1e-12, "R")
     with pytest.raises(ValueError, match=r"init must have shape \(\.\.\., 3, 3\) broadcastable to the batch shape \[8\]"):
         torchrot.rigid_registration(x, y, init=torch.eye(3, dtype=torch.float64).expand(3, 3, 3))
-    with pytest.raises(TypeError, match="init must have x's dtype"):
-        torchrot.rigid_registration(x, y, init=R.float())
+    with pytest.raises(TypeError, match="init must be float32, float64, float16 or bfloat16, got torch.int64"):
+        torchrot.rigid_registration(x, y, init=R.long())
     with pytest.raises(ValueError, match="init must hold rotations"):
         torchrot.rigid_registration(x, y, init=2 * R)
+
+
+@pytest.mark.parametrize("init_dtype", [torch.float64, torch.float32, torch.float16, torch.bfloat16], ids=str)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32, torch.float16, torch.bfloat16], ids=str)
+def test_init_of_any_float_dtype_goes_to_fit_rotation_as_it_is(dtype, init_dtype, monkeypatch):
+    """init is fit_rotation's to check and cast (any float dtype, as
+    fit_rotation takes it): the same warm start whatever the inputs' dtype."""
+    x, y, (R, _, _) = registration_problem((4,), n=20, seed=16, with_scale=False)
+    init = R.to(init_dtype)
+    seen = []
+    fit = torchrot.fit_rotation
+    monkeypatch.setattr(torchrot, "fit_rotation", lambda M, init=None, **kw: seen.append(init) or fit(M, init, **kw))
+    out = torchrot.rigid_registration(x.to(dtype), y.to(dtype), init=init)
+    assert seen[-1] is init
+    assert out.R.dtype == dtype
+    assert_close(out.R, R, {torch.float64: 1e-12, torch.float32: 1e-5}.get(dtype, 1e-2), "R")
+
+
+def _not_a_rotation(what, dtype):
+    R = torchrot.fit_rotation(torch.randn(3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(17)))
+    if what == "3 I":
+        return (3 * torch.eye(3, dtype=torch.float64)).to(dtype)
+    if what == "reflection":
+        return (R * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)).to(dtype)
+    return (R + 0.2).to(dtype)
+
+
+@pytest.mark.parametrize("layer", [False, True])
+@pytest.mark.parametrize("what", ["3 I", "reflection", "skewed"])
+@pytest.mark.parametrize("init_dtype", [torch.float64, torch.float32, torch.float16, torch.bfloat16], ids=str)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16], ids=str)
+def test_init_that_is_not_a_rotation_raises_in_every_dtype(dtype, init_dtype, what, layer):
+    """A half-precision init was projected onto a rotation by a cold fit
+    before any check, so 3 I or a reflection passed; every dtype is checked
+    by fit_rotation now, the registration function and its layer alike."""
+    x, y, _ = registration_problem((), n=20, seed=18, with_scale=False)
+    register = torchrot.nn.RigidRegistration() if layer else torchrot.rigid_registration
+    with pytest.raises(ValueError, match="init must hold rotations"):
+        register(x.to(dtype), y.to(dtype), init=_not_a_rotation(what, init_dtype))
+
+
+@pytest.mark.parametrize("weight", [1e38, 3e38, 1e-40, 1e-44])
+def test_extreme_finite_weights(weight):
+    """Weights whose sum overflows float32 (1e38 each: it made p zero, and R =
+    I, t = 0 came back without an error), and subnormal ones: only the
+    weights' ratios matter, so all-equal weights give the unweighted fit."""
+    x, y, (R, t, _) = registration_problem((), n=40, seed=19, with_scale=False, dtype=torch.float32)
+    w = torch.full((40,), weight, dtype=torch.float32)
+    assert torch.isinf(w.sum()) or weight < 1
+    out = torchrot.rigid_registration(x, y, w, scale=True)
+    plain = torchrot.rigid_registration(x, y, scale=True)
+    for a, b, name in zip(out, plain, "Rts"):
+        assert_close(a, b, 1e-5, name)
+    assert_close(out.R, R, 1e-5, "R")
+    # unequal extreme weights: the same as the weights scaled to ordinary values
+    w = torch.linspace(1, 2, 40, dtype=torch.float32) * 1.5e38
+    scaled = torchrot.rigid_registration(x, y, w / 1e38, scale=True)
+    for a, b, name in zip(torchrot.rigid_registration(x, y, w, scale=True), scaled, "Rts"):
+        assert_close(a, b, 1e-5, name)
+
+
+def test_extreme_weights_gradient_is_finite_and_scale_free():
+    x, y, _ = registration_problem((), n=12, seed=20, noise=0.3, dtype=torch.float32)
+    grads = []
+    for scale in (1.0, 1e37):
+        w = (torch.linspace(1, 2, 12) * scale).requires_grad_()
+        torchrot.rigid_registration(x, y, w, scale=True).t.sum().backward()
+        grads.append(w.grad * scale)  # d/dw of a function of w / sum(w) scales as 1 / scale
+    assert torch.isfinite(grads[1]).all()
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-4, atol=1e-6)
 
 
 def test_compiles_fullgraph():

@@ -33,10 +33,24 @@ Registered here:
 from __future__ import annotations
 
 import torch
-from torch._functorch.utils import enable_single_level_autograd_function, unwrap_dead_wrappers
 from torch.autograd import forward_ad
 
 from torchrot._limits import GRADIENT_EPS
+from torchrot._torch_private import (
+    after_autograd_keyset,
+    any_requires_grad,
+    below_autograd,
+    differentiating_levels_below,
+    enable_single_level_autograd_function,
+    forward_grad_enabled,
+    forward_level,
+    functorch_front_excluded,
+    functorch_levels,
+    functorch_transforms_active,
+    innermost_functorch_level,
+    single_level_function,
+    unwrap_dead_wrappers,
+)
 
 
 def rotation_tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: float) -> torch.Tensor:
@@ -79,7 +93,7 @@ def _below_autograd(op, *args) -> torch.Tensor:
     """``op(*args)`` straight to its kernel, past the operator's Autograd
     kernel: for calls that record no derivative outside torch.func, whatever
     tangents their tensors carry."""
-    with torch._C._AutoDispatchBelowAutograd():
+    with below_autograd():
         return op(*args)
 
 
@@ -96,34 +110,21 @@ def _tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: fl
     operator reaches the levels outside it (forward over forward came out
     as zeros): if the tensors depend on such a differentiating level, raise.
     """
-    if not torch._C._are_functorch_transforms_active():
+    if not functorch_transforms_active():
         if not torch.is_grad_enabled():  # backward without create_graph: nothing to record
             return _below_autograd(_BACKWARD_OP, X, R, M, gradient_eps)
         return rotation_tangent(X, R, M, gradient_eps)
-    if not torch._C._dispatch_tls_is_dispatch_key_excluded(_FUNCTORCH_FRONT):
+    if not functorch_front_excluded():
         return _TangentFunction.apply(X, R, M, gradient_eps)
-    if _differentiated_outside(torch._C._functorch.peek_interpreter_stack().level(), (X, R, M)):
+    if _differentiated_outside(innermost_functorch_level(), (X, R, M)):
         _no_second_derivative(None, None)
     return rotation_tangent(X, R, M, gradient_eps)
 
 
-_FUNCTORCH_FRONT = torch._C.DispatchKey.FuncTorchDynamicLayerFrontMode
-_DIFFERENTIATING = (torch._C._functorch.TransformType.Grad, torch._C._functorch.TransformType.Jvp)
-
-
 def _differentiated_outside(level: int, tensors) -> bool:
     """Whether a tensor is wrapped by a torch.func grad/jvp level below ``level``."""
-    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
-
-    outer = {i.level() for i in retrieve_all_functorch_interpreters()
-             if i.key() in _DIFFERENTIATING and i.level() < level}
-    functorch = torch._C._functorch
-    for t in tensors:
-        while functorch.is_gradtrackingtensor(t) or functorch.is_batchedtensor(t):
-            if functorch.maybe_get_level(t) in outer:
-                return True
-            t = functorch.get_unwrapped(t)
-    return False
+    outer = differentiating_levels_below(level)
+    return any(wrapper in outer for t in tensors for wrapper in functorch_levels(t))
 
 
 class FitRotationFunction(torch.autograd.Function):
@@ -140,7 +141,7 @@ class FitRotationFunction(torch.autograd.Function):
     def forward(M, init, max_iter, variant, gradient_eps):
         # Both derivative modes are off here: the operator runs below autograd
         # (under torch.func through the dispatcher, for the levels below).
-        if not torch._C._are_functorch_transforms_active():
+        if not functorch_transforms_active():
             return _below_autograd(_FIT_OP, M, init, max_iter, variant, gradient_eps)
         return torch.ops.torchrot.fit_rotation(M, init, max_iter, variant, gradient_eps)
 
@@ -184,14 +185,14 @@ _BACKWARD_OP = torch.ops.torchrot.fit_rotation_backward.default
 
 def _has_tangent(args) -> bool:
     """Whether a tensor argument carries a forward-mode tangent. A dual level
-    opened by forward_ad.dual_level sets forward_ad._current_level, but one
+    opened by forward_ad.dual_level sets forward_level(), but one
     replayed by torch.compile's tracer (AOTAutograd, make_fx) does not, so
     traced tensors (subclasses: FakeTensor, FunctionalTensor, ...) are
     checked one by one (the check costs about as much as a small fit)."""
-    if forward_ad._current_level >= 0:
+    if forward_level() >= 0:
         return True
     return any(
-        type(a) is not torch.Tensor and torch._VF._unpack_dual(a, 0).tangent is not None
+        type(a) is not torch.Tensor and forward_ad.unpack_dual(a, level=0).tangent is not None
         for a in args if isinstance(a, torch.Tensor)
     )
 
@@ -202,21 +203,19 @@ def _register_autograd(name: str, function: type[torch.autograd.Function]) -> No
     ``torchrot::_<name>_python_autograd`` (see above)."""
     op = getattr(torch.ops.torchrot, name).default
     defaults = tuple(a.default_value for a in op._schema.arguments)
-    # Function.apply without its per-call signature binding (arguments are
-    # always complete here), which would cost several times the fit itself.
-    apply = super(torch.autograd.Function, function).apply
+    apply = single_level_function(function).apply
 
     def kernel(keyset, *args):
         args = args + defaults[len(args):]  # the dispatcher drops trailing defaulted arguments
-        functorch = torch._C._are_functorch_transforms_active()
+        functorch = functorch_transforms_active()
         # Derivatives to record: reverse mode with an input that requires
         # grad; forward mode while a dual level is open (torch.func.jvp's
         # levels, also replayed by torch.compile, are functorch levels; the
         # tangents themselves cannot be queried cheaply). Inside the
         # Function's forward both modes are off, so the operator it calls
         # comes back here and runs below autograd.
-        if (torch.is_grad_enabled() and torch._C._any_requires_grad(*args)) or (
-            torch._C._is_fwd_grad_enabled() and (functorch or _has_tangent(args))
+        if (torch.is_grad_enabled() and any_requires_grad(*args)) or (
+            forward_grad_enabled() and (functorch or _has_tangent(args))
         ):
             if not functorch:
                 return apply(*unwrap_dead_wrappers(args))
@@ -225,8 +224,8 @@ def _register_autograd(name: str, function: type[torch.autograd.Function]) -> No
             # one level, like functorch's own per-level Functions.
             with enable_single_level_autograd_function():
                 return apply(*args)
-        with torch._C._AutoDispatchBelowAutograd():
-            return op.redispatch(keyset & torch._C._after_autograd_keyset, *args)
+        with below_autograd():
+            return op.redispatch(keyset & after_autograd_keyset, *args)
 
     _lib.impl(f"_{name}_python_autograd", kernel, "Autograd", with_keyset=True)
 

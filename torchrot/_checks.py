@@ -11,10 +11,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from torchrot._limits import INIT_TOLERANCE, MAX_GRADIENT_EPS, MAX_ITER
+from torchrot._limits import INIT_TOLERANCE, MAX_GRADIENT_EPS, MAX_ITER, MESSAGES
 
-OP_NAME = "torchrot.fit_rotation"
-BACKWARD_NAME = "torchrot.fit_rotation_backward"
+OP_NAME = MESSAGES["OP_NAME"]
+BACKWARD_NAME = MESSAGES["BACKWARD_NAME"]
+OUT_AUTOGRAD = MESSAGES["OUT_AUTOGRAD"]
+OUT_INFERENCE = MESSAGES["OUT_INFERENCE"]
 VARIANTS = ("newton", "conservative", "gershgorin")
 SUPPORTED_DTYPES = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
 
@@ -139,6 +141,21 @@ def check_out(M: torch.Tensor, out) -> None:
         raise ValueError(f"{OP_NAME}: out must have M's shape {list(M.shape)}, got {list(out.shape)}")
     if has_overlapping_elements(out):
         raise ValueError(f"{OP_NAME}: out must not have overlapping elements (e.g. an expanded tensor)")
+    # (Not while dynamo traces, which cannot: the fake kernel checks it then.)
+    if not torch.compiler.is_compiling() and out.is_inference() and not torch.is_inference_mode_enabled():
+        raise ValueError(OP_NAME + OUT_INFERENCE)
+
+
+def check_out_autograd(M: torch.Tensor, out: torch.Tensor) -> None:
+    """torch's rule for out= operators, which the operator's Autograd kernel
+    applies (csrc/autograd.cpp): no call that would record a derivative."""
+    reverse = torch.is_grad_enabled() and (M.requires_grad or out.requires_grad)
+    if reverse or _has_tangent(M) or _has_tangent(out):
+        raise ValueError(OP_NAME + OUT_AUTOGRAD)
+
+
+def _has_tangent(t: torch.Tensor) -> bool:
+    return torch.autograd.forward_ad.unpack_dual(t).tangent is not None
 
 
 def check_all(M, init, max_iter, variant) -> None:

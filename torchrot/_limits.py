@@ -1,14 +1,35 @@
-"""torchrot's limits, defaults and tolerances, read from the C++ extension.
+"""torchrot's limits, defaults, tolerances, status codes and shared error
+messages, read from the C++ extension.
 
-They are defined once, in csrc/limits.h (explained there), and handed over by
+They are defined once, in csrc/limits.h, csrc/fit_rotation.h and
+csrc/messages.h (explained there), and handed over by
 ``torchrot._C.constants()``: the argument checks, the fake kernels and the
 pure-PyTorch path use exactly the kernel's values.
 """
 from __future__ import annotations
 
+import enum
+
+import torch
+
 from torchrot import _C
 
 _CONSTANTS = _C.constants()
+
+FitStatus = enum.IntEnum("FitStatus", _CONSTANTS["FIT_STATUS"], module=__name__)
+FitStatus.__doc__ = """Per-matrix outcome of a fit, as :func:`torchrot.fit_rotation_info` reports it
+(its ``status``, a uint8 tensor; compare with these members):
+
+- ``CAYLEY``: the Cayley iteration produced R;
+- ``FALLBACK``: converged mode only, the Horn/Jacobi fallback produced R (a
+  lane that did not converge within its steps or stopped at a saddle);
+- ``BAD_INIT``: the warm start was finite but not a rotation (the call raises,
+  but for traced and ``meta`` calls, where R is NaN);
+- ``NON_FINITE``: M or init held NaN/Inf; R is NaN.
+"""
+
+#: Error messages shared by the C++ operator and the Python checks, by name.
+MESSAGES: dict = _CONSTANTS["MESSAGES"]
 
 #: Default damping of the derivative (the operator schemas' default).
 GRADIENT_EPS: float = _CONSTANTS["DEFAULT_GRADIENT_EPS"]
@@ -18,9 +39,11 @@ MAX_GRADIENT_EPS: float = _CONSTANTS["MAX_GRADIENT_EPS"]
 MAX_ITER: int = _CONSTANTS["MAX_ITER"]
 #: A warm start is accepted when |R^T R - I|_F is below this and det R > 0.
 INIT_TOLERANCE: float = _CONSTANTS["INIT_TOLERANCE"]
-#: Below this deviation (float32 / float64 compute) a warm start is used as
-#: it is; above it, it first takes up to INIT_CLEAN_STEPS Newton-Schulz steps.
-INIT_CLEAN: dict = {"float32": _CONSTANTS["INIT_CLEAN_FLOAT"], "float64": _CONSTANTS["INIT_CLEAN_DOUBLE"]}
+#: Below this deviation (INIT_CLEAN_EPS times the compute dtype's eps,
+#: float32 / float64) a warm start is used as it is; above it, it first takes
+#: up to INIT_CLEAN_STEPS Newton-Schulz steps.
+INIT_CLEAN_EPS: float = _CONSTANTS["INIT_CLEAN_EPS"]
+INIT_CLEAN: dict = {name: INIT_CLEAN_EPS * torch.finfo(getattr(torch, name)).eps for name in ("float32", "float64")}
 INIT_CLEAN_STEPS: int = _CONSTANTS["INIT_CLEAN_STEPS"]
 #: A step is the last only if undamped: c - tr S <= UNDAMPED |tr S| (sqrt(eps),
 #: float32 / float64 compute).

@@ -9,7 +9,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-from torch.autograd import forward_ad
 
 import torchrot._autograd  # noqa: F401  (registers the operators' derivatives)
 from torchrot import _C
@@ -20,10 +19,12 @@ from torchrot._checks import (
     check_gradient_eps_type,
     check_max_iter_type,
     check_out,
+    check_out_autograd,
     check_tensor,
     check_variant_type,
 )
 from torchrot._limits import GRADIENT_EPS
+from torchrot._torch_private import below_autograd, forward_level, functorch_transforms_active, is_non_overlapping_and_dense
 from torchrot.reference import fit_rotation_backward_reference, fit_rotation_reference
 
 _OTHER_DEVICES = ("cuda", "xpu", "mps")
@@ -43,8 +44,9 @@ class FitInfo(NamedTuple):
 
     R: ``(..., 3, 3)`` the fitted rotations.
     iterations: ``(...)`` int32, Cayley steps taken per matrix.
-    status: ``(...)`` uint8 per matrix: 0 Cayley iteration, 1 fallback
-        (Horn/Jacobi, converged mode only), 3 non-finite input (R is NaN).
+    status: ``(...)`` uint8 per matrix, a :class:`torchrot.FitStatus` code
+        (CAYLEY, FALLBACK: the Horn/Jacobi fallback in converged mode,
+        NON_FINITE: M or init held NaN/Inf and R is NaN).
     """
 
     R: torch.Tensor
@@ -58,7 +60,7 @@ def fit_rotation(
     *,
     max_iter: int | None = None,
     variant: str = "conservative",
-    gradient_eps: float = GRADIENT_EPS,
+    gradient_eps: float | None = None,
     out: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The rotation R (det R = +1) maximising tr(R^T M): the rotation nearest to M.
@@ -102,9 +104,14 @@ def fit_rotation(
             exact derivative up to a relative (lambda / (sigma_i + sigma_j))^2
             where it exists; bounded (|u| <= |g| / (2 lambda)) where R is not
             unique (rank-deficient M, rotations by pi). ``0``: undamped.
+            ``None`` (the default): ``torchrot.DEFAULT_GRADIENT_EPS``.
         out: optional tensor of M's shape, dtype and device to write into; it
             may be ``init`` or ``M`` itself (an in-place warm-start update).
-            Not differentiable: raises if M requires grad.
+            Written as torch's out= operators write: its version counter is
+            bumped (autograd then refuses to differentiate through values it
+            overwrote), it is not differentiable (raises where M or out
+            requires grad in grad mode, or carries a forward-mode tangent),
+            and an inference tensor is written only in inference mode.
 
     Returns:
         ``(..., 3, 3)`` rotations, M's dtype. A matrix whose M or init holds
@@ -123,12 +130,15 @@ def fit_rotation(
         wrong value, shape or device (docs/errors.md), naming the argument: M
         not ``(..., 3, 3)`` or not floating point; init of another shape,
         dtype or device, or not a rotation; out of the wrong shape, dtype or
-        device, with overlapping elements, or given while M requires grad;
+        device, with overlapping elements, an inference tensor outside
+        inference mode, or given while M or out requires grad;
         unknown variant; max_iter out of range; gradient_eps out of range.
         A call that raises changes no tensor it was given.
     """
     compiling = torch.compiler.is_compiling()
     _check_call(M, init, max_iter, variant, gradient_eps, out, compiling)
+    if gradient_eps is None:
+        gradient_eps = GRADIENT_EPS
     plain = _plain_eager(M, compiling)
     if out is None and plain:
         # The common call, in training or not: the operator, entered from C++,
@@ -141,18 +151,15 @@ def fit_rotation(
         if R is NotImplemented:  # a tensor subclass, a torch function mode, ...: through torch.ops
             R = _fit_rotation_op(M, init, max_iter, variant, gradient_eps)
         return R
-    differentiable = _needs_derivative(M)
     if out is not None:
-        if differentiable:
-            raise ValueError(
-                "torchrot.fit_rotation: out= does not support automatic differentiation "
-                "(M requires grad); call it without out"
-            )
-        # The plain call, from C++ as above; through torch.ops where that declines.
+        # The plain call, from C++ as above; through torch.ops where that
+        # declines. The operator's Autograd kernel refuses a call that would
+        # need a derivative, its ADInplaceOrView kernel bumps out's version
+        # (csrc/autograd.cpp).
         if not plain or _fit_rotation_eager(M, init, max_iter, variant, gradient_eps, out) is NotImplemented:
             _fit_rotation_out_op(M, init, max_iter, variant, out)
         return out
-    if differentiable or compiling:
+    if _needs_derivative(M) or compiling:
         # The operator's Autograd kernel (csrc/autograd.cpp, handing torch.func,
         # forward AD and tracing to torchrot/_autograd.py) records the
         # derivatives in every mode (backward, forward AD, each torch.func
@@ -164,7 +171,7 @@ def fit_rotation(
     # Nothing to differentiate: below the operator's Autograd kernel, which
     # hands every call under a torch.func transform (vmap, say) to its Python
     # kernel (csrc/autograd.cpp), more than the cost of a small fit.
-    with torch._C._AutoDispatchBelowAutograd():
+    with below_autograd():
         return _fit_rotation_op(M, init, max_iter, variant, gradient_eps)
 
 
@@ -183,7 +190,7 @@ def _check_call(M, init, max_iter, variant, gradient_eps, out=None, compiling: b
     check_variant_type(variant)
     if out is not None:
         check_tensor(out, "out")
-    custom_eps = gradient_eps is not GRADIENT_EPS
+    custom_eps = gradient_eps is not None
     if custom_eps:
         check_gradient_eps_type(gradient_eps)
     # All checks, in the operator's order: while traced, and for out=, whose
@@ -191,10 +198,13 @@ def _check_call(M, init, max_iter, variant, gradient_eps, out=None, compiling: b
     if compiling is None:
         compiling = torch.compiler.is_compiling()
     if compiling or (custom_eps and out is not None):
+        if out is not None:
+            check_out_autograd(M, out)  # the operator's Autograd kernel checks first
         check_all(M, init, max_iter, variant)
         if out is not None:
             check_out(M, out)
-        check_gradient_eps(gradient_eps)
+        if custom_eps:
+            check_gradient_eps(gradient_eps)
 
 
 def _plain_eager(M: torch.Tensor, compiling: bool) -> bool:
@@ -208,9 +218,9 @@ def _plain_eager(M: torch.Tensor, compiling: bool) -> bool:
     return (
         type(M) is torch.Tensor
         and not compiling
-        and forward_ad._current_level < 0
+        and forward_level() < 0
         and M.dtype in _EAGER_DTYPES
-        and not torch._C._are_functorch_transforms_active()
+        and not functorch_transforms_active()
     )
 
 
@@ -218,7 +228,7 @@ def _needs_derivative(M: torch.Tensor) -> bool:
     """Whether a call must record derivatives: reverse mode (also under
     torch.func.grad, whose tensors require grad) or forward mode (a dual
     level is open, also under torch.func.jvp)."""
-    return (torch.is_grad_enabled() and M.requires_grad) or forward_ad._current_level >= 0
+    return (torch.is_grad_enabled() and M.requires_grad) or forward_level() >= 0
 
 
 def fit_rotation_info(
@@ -238,14 +248,14 @@ def fit_rotation_info(
     Returns:
         :class:`FitInfo` ``(R, iterations, status)``: R ``(..., 3, 3)`` in M's
         dtype; iterations ``(...)`` int32, the Cayley steps each matrix took;
-        status ``(...)`` uint8: 0 the Cayley iteration, 1 the Horn/Jacobi
-        fallback (converged mode), 3 NaN/Inf in M or init (R is NaN).
+        status ``(...)`` uint8, a :class:`torchrot.FitStatus` code per matrix.
 
-    Not differentiable (R carries no gradient); use :func:`fit_rotation`.
+    Not differentiable: none of the outputs requires grad or carries a
+    gradient, whatever M does; use :func:`fit_rotation` for that.
 
     Raises: the errors of :func:`fit_rotation`.
     """
-    _check_call(M, init, max_iter, variant, GRADIENT_EPS)
+    _check_call(M, init, max_iter, variant, None)
     return FitInfo(*torch.ops.torchrot.fit_rotation_info(M, init, max_iter, variant))
 
 
@@ -269,7 +279,7 @@ def has_soa_layout(t: torch.Tensor) -> bool:
         return False
     if any(batch[d][1] != batch[d + 1][1] * batch[d + 1][0] for d in range(leading - 1)):
         return False
-    return torch._prims_common.is_non_overlapping_and_dense_or_false(t)
+    return is_non_overlapping_and_dense(t)
 
 
 def _empty_result(M: torch.Tensor) -> torch.Tensor:

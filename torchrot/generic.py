@@ -36,10 +36,12 @@ import math
 
 import torch
 
+from torchrot._torch_private import compile_errors
 from torchrot._limits import (
     CONVERGED_CAP,
     ESTIMATE_SWITCH,
     GERSHGORIN_STEPS,
+    FitStatus,
     INIT_CLEAN,
     INIT_CLEAN_STEPS,
     INIT_TOLERANCE,
@@ -49,7 +51,9 @@ from torchrot._limits import (
     UNDAMPED,
 )
 
-STATUS_CAYLEY, STATUS_FALLBACK, STATUS_BAD_INIT, STATUS_NON_FINITE = 0, 1, 2, 3
+# The status codes (torchrot.FitStatus) as plain ints, which tracing takes as constants.
+STATUS_CAYLEY, STATUS_FALLBACK, STATUS_BAD_INIT, STATUS_NON_FINITE = (
+    int(FitStatus.CAYLEY), int(FitStatus.FALLBACK), int(FitStatus.BAD_INIT), int(FitStatus.NON_FINITE))
 
 #: Masked Cayley steps every matrix of the batch takes before the stragglers
 #: are compacted (converged mode), by compute dtype, from a warm start (see
@@ -354,7 +358,7 @@ def _horn_rotation(A):
 # Eager, the loops stop as soon as no lane runs and the rare pieces (saddle
 # escapes, the Horn fallback, the overflow pass) run only when some lane needs
 # them: one host read of a mask each (free on CPU). Compiled, the same
-# decisions are graph operations (torch._higher_order_ops.while_loop,
+# decisions are graph operations (torch.while_loop,
 # torch.cond), traced once each: no graph break, no unrolling (the graph stays
 # small enough to compile in about two minutes). Both spellings take the same
 # decisions, so results do not depend on the mode.
@@ -414,8 +418,6 @@ def _repeat(step, st, steps, unroll=True):
         for _ in range(steps):
             st = step(st)
         return st
-    from torch._higher_order_ops.while_loop import while_loop
-
     A = st["A"]
     # The lane flags travel through the loop as int32 0/1: inductor's CPU code
     # loads and stores bool buffers byte by byte (a branch per lane), which
@@ -434,12 +436,11 @@ def _repeat(step, st, steps, unroll=True):
         out = pack(step(unpack(xs)))
         return (i + 1, *(o.clone() if any(o is x for x in xs) else o for o in out))
 
-    carried, seen = [], set()
+    carried = []
     for x in pack(st):  # while_loop rejects carried inputs that alias each other
-        carried.append(x.clone() if id(x) in seen else x)
-        seen.add(id(x))
+        carried.append(x.clone() if any(x is y for y in carried) else x)
     counter = torch.zeros((), dtype=torch.int64, device=A[0].device)
-    return unpack(while_loop(cond, body, (counter, *carried))[1:])
+    return unpack(torch.while_loop(cond, body, (counter, *carried))[1:])
 
 
 # ---------------------------------------------------------------------------
@@ -742,7 +743,7 @@ def _run_core(M, init, max_iter, variant, warm=None):
         return core(M, init, max_iter, variant, warm)
     try:
         return core(M, init, max_iter, variant)
-    except Exception as error:  # e.g. no Triton for this device: run eagerly from now on
+    except compile_errors() as error:  # e.g. no Triton for this device: run eagerly from now on
         import warnings
 
         warnings.warn(f"torchrot: torch.compile failed on {M.device.type} tensors ({type(error).__name__}: "

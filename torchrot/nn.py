@@ -16,7 +16,6 @@ from torch import nn
 
 import torchrot
 from torchrot._checks import VARIANTS, check_gradient_eps
-from torchrot._limits import GRADIENT_EPS
 from torchrot.registration import RigidTransform, rigid_registration
 
 __all__ = ["RotationFit", "RigidRegistration"]
@@ -60,11 +59,8 @@ class RotationFit(nn.Module):
         ``init``: optional warm-start rotations ``(..., 3, 3)`` broadcastable
         to the batch (no gradient flows to it).
         """
-        # The library default unless set (GRADIENT_EPS itself: fit_rotation
-        # tells the default apart by identity).
-        gradient_eps = GRADIENT_EPS if self.gradient_eps is None else self.gradient_eps
         return torchrot.fit_rotation(as_matrices(M), init, max_iter=self.max_iter, variant=self.variant,
-                                     gradient_eps=gradient_eps)
+                                     gradient_eps=self.gradient_eps)
 
     def extra_repr(self) -> str:
         return f"max_iter={self.max_iter}, variant={self.variant!r}, gradient_eps={self.gradient_eps}"

@@ -26,6 +26,7 @@ import torch
 
 import torchrot
 from torchrot._checks import broadcast_shapes
+from torchrot._torch_private import is_functorch_wrapped
 
 _NAME = "torchrot.rigid_registration"
 _COMPUTE_IN_FLOAT32 = (torch.float16, torch.bfloat16)
@@ -70,10 +71,10 @@ def rigid_registration(
             squared); a zero weight drops its point. ``None``: all ones.
         scale: also fit a uniform scale s (Umeyama). ``False``: s = 1.
         init: optional ``(..., 3, 3)`` rotations broadcastable to the batch,
-            in the inputs' dtype, forwarded to :func:`torchrot.fit_rotation` as
-            its warm start (e.g. the previous frame's R). No gradient flows to
-            init. (A float16/bfloat16 init is projected onto the nearest float32
-            rotation first.)
+            of any float dtype (float32, float64, float16, bfloat16),
+            forwarded to :func:`torchrot.fit_rotation` as its warm start (e.g.
+            the previous frame's R), which checks that they are rotations and
+            brings them to the compute precision. No gradient flows to init.
 
     Returns:
         :class:`RigidTransform` ``(R, t, s)`` with R ``(..., 3, 3)``, t
@@ -86,7 +87,8 @@ def rigid_registration(
 
     Raises:
         TypeError: x, y, weights or init not a tensor, not float32/float64/
-            float16/bfloat16, or of different dtypes; scale not a bool.
+            float16/bfloat16, or x, y and weights of different dtypes; scale
+            not a bool.
         ValueError: shapes other than ``(..., N, 3)`` / ``(..., N)`` /
             ``(..., 3, 3)``, different N, batch dimensions that do not
             broadcast, tensors on different devices; negative weights; init
@@ -113,19 +115,10 @@ def rigid_registration(
         if compute != dtype:
             x, y = x.to(compute), y.to(compute)
             weights = None if weights is None else weights.to(compute)
-        R, t, s = _solve(x, y, weights, scale, _init_in(init, compute))
+        R, t, s = _solve(x, y, weights, scale, init)
     if compute != dtype:  # (Tensor.to costs ~0.7 us even where it returns its tensor)
         R, t, s = R.to(dtype), t.to(dtype), s.to(dtype)
     return RigidTransform(R, t, s)
-
-
-def _init_in(init, compute: torch.dtype):
-    """init in the compute dtype. A float16/bfloat16 init is only a rotation to
-    its own precision, so in float32 it is replaced by the nearest float32
-    rotation (init carries no gradient)."""
-    if init is None or init.dtype == compute:
-        return init
-    return torchrot.fit_rotation(init.detach().to(compute))
 
 
 def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -142,7 +135,7 @@ def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor
     if weights is None:
         p = torch.full((x.shape[-2],), 1.0 / x.shape[-2], dtype=x.dtype, device=x.device)
     else:
-        p = weights / weights.sum(-1, keepdim=True)
+        p = _normalized_weights(weights)
     p_row = p.unsqueeze(-2)  # (..., 1, N)
     x_mean = _matmul(x_rows, p.unsqueeze(-1))  # (..., 3, 1)
     y_mean = _matmul(y_rows, p.unsqueeze(-1))
@@ -162,6 +155,17 @@ def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor
         s = torch.ones(M.shape[:-2], dtype=M.dtype, device=M.device)
     t = (y_mean - s[..., None, None] * _matmul(R, x_mean)).squeeze(-1)
     return R, t, s
+
+
+def _normalized_weights(weights: torch.Tensor) -> torch.Tensor:
+    """p = w / sum(w) along the points, for any finite non-negative weights: w
+    is first divided by its largest entry, so that the sum can neither
+    overflow (a sum of large finite float32 weights is Inf, which made p zero
+    and the fit the identity) nor lose small weights to underflow. The
+    divisor is detached: p does not depend on it, so the derivative is that
+    of w / sum(w)."""
+    scaled = weights / weights.detach().amax(-1, keepdim=True)
+    return scaled / scaled.sum(-1, keepdim=True)
 
 
 def _matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -217,8 +221,8 @@ def _check_arguments(x, y, weights, scale, init) -> None:
 def _check_init(init, x: torch.Tensor, batch: torch.Size) -> None:
     if not isinstance(init, torch.Tensor):
         raise TypeError(f"{_NAME}: init must be None or a torch.Tensor, got {type(init).__name__}")
-    if init.dtype != x.dtype:
-        raise TypeError(f"{_NAME}: init must have x's dtype ({x.dtype}), got {init.dtype}")
+    if init.dtype not in _SUPPORTED_DTYPES:  # any of them: fit_rotation casts init to its compute dtype
+        raise TypeError(f"{_NAME}: init must be float32, float64, float16 or bfloat16, got {init.dtype}")
     if init.device != x.device:
         raise ValueError(f"{_NAME}: init must be on x's device ({x.device}), got {init.device}")
     try:
@@ -239,7 +243,7 @@ def _values_readable(*tensors) -> bool:
     for t in tensors:
         if t is None:
             continue
-        if t.device.type == "meta" or torch._C._functorch.is_functorch_wrapped_tensor(t):
+        if t.device.type == "meta" or is_functorch_wrapped(t):
             return False
     return True
 

@@ -104,6 +104,31 @@ def cpu_kernel(name: str | None) -> Iterator[str]:
         torch.ops.torchrot._set_cpu_kernel(previous)
 
 
+def available_cpu_kernels() -> tuple[str, ...]:
+    """The CPU kernel objects of CPU_KERNELS that this machine runs: those its
+    build has (scalar and default everywhere, AVX2 and AVX-512 on x86-64) up
+    to the highest its CPU supports."""
+    found = []
+    for name in CPU_KERNELS:
+        with cpu_kernel(name) as used:
+            if used == name:
+                found.append(name)
+    return tuple(found)
+
+
+def conditioning(M: torch.Tensor) -> torch.Tensor:
+    """Per matrix, how much rounding can move the fitted rotation:
+    |M|_F / min(s_i + s_j) over the signed singular values s of M (the
+    eigenvalues of the optimality system, csrc/kernel/rotation_gradient.h;
+    Inf where the maximiser is not unique). A fit at working precision is
+    within about eps times this of the exact rotation, in float64."""
+    M = M.double()
+    s = torch.linalg.svdvals(M)
+    s[..., 2] = s[..., 2] * torch.linalg.det(M).sign()
+    pair_sums = torch.stack([s[..., 0] + s[..., 1], s[..., 0] + s[..., 2], s[..., 1] + s[..., 2]], -1)
+    return M.norm(dim=(-2, -1)) / pair_sums.amin(-1).clamp_min(0)
+
+
 @contextlib.contextmanager
 def generic_kernel() -> Iterator[None]:
     """``with generic_kernel(): ...`` runs ``torch.ops.torchrot.*`` on CPU

@@ -66,7 +66,7 @@ struct Tolerances {
   static constexpr int converged_budget = (max_escapes + 1) * converged_cap;
   // Warm starts (limits.h) are used as they are below init_clean (and
   // accepted at all below limits::kInitTolerance, see check_warm_start).
-  static constexpr T init_clean = T(sizeof(T) == 4 ? limits::kInitCleanFloat : limits::kInitCleanDouble);
+  static constexpr T init_clean = T(limits::kInitCleanEps) * eps;
 };
 
 template <typename L>

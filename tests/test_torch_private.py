@@ -1,0 +1,118 @@
+"""The private torch names torchrot uses (torchrot/_torch_private.py), each
+checked for what torchrot relies on, on the installed torch: CI runs this on
+the oldest and the newest supported release, so that a name that moves or
+changes fails here, loudly, rather than in a user's torch.func transform.
+
+Also: no other module of torchrot reaches into torch's private modules."""
+from __future__ import annotations
+
+import pathlib
+import re
+
+import pytest
+import torch
+from torch.autograd import forward_ad
+
+import torchrot
+from torchrot import _torch_private as private
+
+PACKAGE = pathlib.Path(torchrot.__file__).parent
+M = torch.randn(6, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+
+
+def test_every_name_is_exported_and_exists():
+    for name in private.__all__:
+        assert getattr(private, name) is not None, name
+
+
+def test_no_other_module_uses_private_torch_names():
+    """Private torch modules and attributes (torch._X, torch.x._y) appear only
+    in _torch_private.py."""
+    pattern = re.compile(r"\btorch(\.[A-Za-z]\w*)*\._[A-Za-z]\w*|forward_ad\._\w+")
+    offenders = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path.name == "_torch_private.py":
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            code = line.split("#")[0].replace("torch.__version__", "")
+            if any(not m.group(0).startswith("torch.ops.") for m in pattern.finditer(code)):
+                offenders.append(f"{path.relative_to(PACKAGE)}:{number}: {line.strip()}")
+    assert not offenders, "\n".join(offenders)
+
+
+def test_below_autograd_and_keysets():
+    x = M.clone().requires_grad_()
+    with private.below_autograd():
+        assert not torch.ops.torchrot.fit_rotation(x).requires_grad
+    keys = torch._C._dispatch_keys(x)
+    assert not (keys & private.after_autograd_keyset).has(torch._C.DispatchKey.AutogradCPU)
+    assert (keys & private.after_autograd_keyset).has(torch._C.DispatchKey.CPU)
+    assert private.any_requires_grad(M, x) and not private.any_requires_grad(M, 1.0)
+
+
+def test_forward_mode_state():
+    assert private.forward_level() == -1 and private.forward_grad_enabled()
+    with forward_ad.dual_level():
+        assert private.forward_level() == 0
+    assert private.forward_level() == -1
+
+
+def test_functorch_state_inside_transforms():
+    seen = {}
+
+    def probe(x):
+        seen["active"] = private.functorch_transforms_active()
+        seen["level"] = private.innermost_functorch_level()
+        seen["excluded"] = private.functorch_front_excluded()
+        seen["levels"] = private.functorch_levels(x)
+        seen["wrapped"] = private.is_functorch_wrapped(x)
+        seen["outer"] = private.differentiating_levels_below(seen["level"])
+        return x.sum()
+
+    assert not private.functorch_transforms_active() and not private.is_functorch_wrapped(M)
+    torch.func.vmap(torch.func.grad(probe))(M)
+    assert seen["active"] and seen["wrapped"] and not seen["excluded"]
+    assert len(seen["levels"]) == 2 and seen["levels"][0] == seen["level"]  # grad wraps the vmap level
+    assert seen["outer"] == set()  # vmap, the level below, does not differentiate
+    torch.func.grad(lambda x: torch.func.grad(probe)(x).sum())(M[0])
+    assert seen["outer"] == {seen["level"] - 1}
+
+
+def test_single_level_function_records_at_each_level():
+    """A single-level Function applied in an Autograd kernel gives the first
+    derivatives of every transform (torch 2.14 routes Function.apply under
+    torch.func to custom_function_call, which raised there)."""
+    x = M.clone()
+    expected = torch.autograd.functional.jacobian(lambda m: torchrot.fit_rotation(m).sum(), x)
+    assert torch.allclose(torch.func.grad(lambda m: torchrot.fit_rotation(m).sum())(x), expected)
+    tangent = torch.randn_like(x)
+    _, jvp = torch.func.jvp(torchrot.fit_rotation, (x,), (tangent,))
+    _, vjp_fn = torch.func.vjp(torchrot.fit_rotation, x)
+    assert torch.allclose((jvp * tangent).sum(), (vjp_fn(tangent)[0] * tangent).sum())  # self-adjoint
+    single = private.single_level_function(torchrot._autograd.FitRotationFunction)
+    assert single.__name__ == "FitRotationFunction"
+    assert issubclass(single, torch.autograd.function._SingleLevelFunction)
+
+
+def test_non_overlapping_and_dense():
+    assert private.is_non_overlapping_and_dense(M) and private.is_non_overlapping_and_dense(M.mT)
+    assert not private.is_non_overlapping_and_dense(M[::2]) and not private.is_non_overlapping_and_dense(M[:1].expand(3, 3, 3))
+
+
+def test_unwrap_dead_wrappers_and_single_level_mode():
+    assert private.unwrap_dead_wrappers((M,))[0] is M
+    with private.enable_single_level_autograd_function():
+        pass
+
+
+def test_compile_errors_are_dynamos():
+    (error,) = private.compile_errors()
+    assert issubclass(error, Exception)
+
+    @torch.compile(fullgraph=True, backend="eager")
+    def breaks(x):
+        torch._dynamo.graph_break()
+        return x + 1
+
+    with pytest.raises(error):
+        breaks(torch.ones(2))

@@ -1,0 +1,138 @@
+"""Every private torch name torchrot uses, in one place.
+
+torch has no public API for what these do; any of them can move or change in
+a torch release. tests/test_torch_private.py checks each one on the installed
+torch (CI runs the whole suite on the oldest and the newest supported
+release), so that a move fails there, loudly, before it reaches a user.
+torchrot's other modules import these names from here, never from torch's
+private modules. (The C++ side's are in csrc/torch_internals.h.)
+
+What they are for: the operators' Python Autograd kernel records derivatives
+at each torch.func level itself (torchrot/_autograd.py), which takes the
+dispatch and functorch internals below; the fake kernel asks a symbolic
+tensor whether it is dense; the device-generic path tells a failed
+torch.compile from an error of the compiled code.
+"""
+from __future__ import annotations
+
+import contextlib
+
+import torch
+from torch._functorch.utils import enable_single_level_autograd_function, unwrap_dead_wrappers
+from torch.autograd.function import _SingleLevelFunction
+
+__all__ = [
+    "after_autograd_keyset",
+    "any_requires_grad",
+    "below_autograd",
+    "compile_errors",
+    "differentiating_levels_below",
+    "enable_single_level_autograd_function",
+    "forward_grad_enabled",
+    "forward_level",
+    "functorch_front_excluded",
+    "functorch_levels",
+    "functorch_transforms_active",
+    "innermost_functorch_level",
+    "is_functorch_wrapped",
+    "is_non_overlapping_and_dense",
+    "single_level_function",
+    "unwrap_dead_wrappers",
+]
+
+#: The dispatch keys after (below) the Autograd keys: an Autograd kernel
+#: redispatches with ``keyset & after_autograd_keyset``.
+after_autograd_keyset = torch._C._after_autograd_keyset
+#: Whether any argument is a tensor that requires grad.
+any_requires_grad = torch._C._any_requires_grad
+#: Whether forward-mode AD records tangents (off inside a jvp rule).
+forward_grad_enabled = torch._C._is_fwd_grad_enabled
+#: Whether a torch.func transform (grad, vmap, jvp, ...) has a level open.
+functorch_transforms_active = torch._C._are_functorch_transforms_active
+_FUNCTORCH = torch._C._functorch
+_FRONT_MODE = torch._C.DispatchKey.FuncTorchDynamicLayerFrontMode
+_DIFFERENTIATING = (_FUNCTORCH.TransformType.Grad, _FUNCTORCH.TransformType.Jvp)
+
+
+def below_autograd() -> contextlib.AbstractContextManager:
+    """A context in which operators run below their Autograd kernels
+    (C++'s at::AutoDispatchBelowAutograd)."""
+    return torch._C._AutoDispatchBelowAutograd()
+
+
+def forward_level() -> int:
+    """The innermost open forward-AD dual level (-1: none), as
+    ``torch.autograd.forward_ad.dual_level`` sets it (not torch.func.jvp's,
+    nor one replayed by a tracer)."""
+    return torch.autograd.forward_ad._current_level
+
+
+def functorch_front_excluded() -> bool:
+    """Whether torch.func's front dispatch key is excluded: code runs inside
+    a transform's processing of an operator (an Autograd kernel or a jvp rule
+    called for one level), not at the user's level."""
+    return torch._C._dispatch_tls_is_dispatch_key_excluded(_FRONT_MODE)
+
+
+def innermost_functorch_level() -> int:
+    """The level of the innermost open torch.func transform."""
+    return _FUNCTORCH.peek_interpreter_stack().level()
+
+
+def differentiating_levels_below(level: int) -> set[int]:
+    """The levels below ``level`` of the open torch.func transforms that
+    differentiate (grad, vjp, jacrev: Grad; jvp, jacfwd: Jvp)."""
+    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
+
+    return {i.level() for i in retrieve_all_functorch_interpreters()
+            if i.key() in _DIFFERENTIATING and i.level() < level}
+
+
+def functorch_levels(t: torch.Tensor) -> list[int]:
+    """The torch.func levels whose grad or batch wrappers ``t`` is, outermost first."""
+    levels = []
+    while _FUNCTORCH.is_gradtrackingtensor(t) or _FUNCTORCH.is_batchedtensor(t):
+        levels.append(_FUNCTORCH.maybe_get_level(t))
+        t = _FUNCTORCH.get_unwrapped(t)
+    return levels
+
+
+def is_functorch_wrapped(t: torch.Tensor) -> bool:
+    """Whether ``t`` is a torch.func wrapper (its values may be symbolic)."""
+    return _FUNCTORCH.is_functorch_wrapped_tensor(t)
+
+
+def is_non_overlapping_and_dense(t: torch.Tensor) -> bool:
+    """Tensor.is_non_overlapping_and_dense (C++), also for fake tensors of
+    symbolic shape (False where that cannot be decided)."""
+    import torch._prims_common
+
+    return torch._prims_common.is_non_overlapping_and_dense_or_false(t)
+
+
+def single_level_function(function: type[torch.autograd.Function]) -> type:
+    """``function`` as a single-level autograd function: the same forward,
+    setup_context, backward and jvp, applied where an operator's Autograd
+    kernel records a derivative for the one torch.func level that called it
+    (under ``enable_single_level_autograd_function``) or outside torch.func.
+    torch.autograd.Function.apply itself hands every call under a torch.func
+    transform to torch's custom_function_call, which since torch 2.14 has no
+    kernel below torch.func's own dispatch: inside an Autograd kernel it
+    raised NotImplementedError for every transform. Its name is
+    ``function``'s, so grad_fn names are unchanged. ``apply`` takes the
+    forward's arguments complete and positional (no binding of defaults:
+    that cost several times a small fit)."""
+    members = {name: staticmethod(getattr(function, name)) for name in ("forward", "setup_context", "backward", "jvp")}
+    members["__doc__"] = function.__doc__
+    return type(function.__name__, (_SingleLevelFunction,), members)
+
+
+def compile_errors() -> tuple[type[BaseException], ...]:
+    """The exceptions by which ``torch.compile`` reports that it could not
+    compile a function (a backend that failed, e.g. no Triton for a device; a
+    graph it refuses), as opposed to errors of running the compiled code,
+    which propagate as themselves. Imported on first use: torch._dynamo is
+    slow to import."""
+    from torch._dynamo.exc import TorchDynamoException
+
+    return (TorchDynamoException,)
