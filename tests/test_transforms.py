@@ -32,6 +32,7 @@ from torch.func import grad, hessian, jacfwd, jacrev, jvp, vjp, vmap
 
 import torchrot
 from torchrot.nn import RigidRegistration, RotationFit
+from torchrot._extension import torch_release as release_of
 from torchrot.testing import generic_kernel
 
 BACKEND = os.environ.get("TORCHROT_TEST_COMPILE_BACKEND", "aot_eager")
@@ -275,9 +276,26 @@ def _runs(target, transform, mode):
     return mode == "eager" or (transform in transforms and mode in modes)
 
 
+# torch 2.12's jacrev builds its basis with a data-dependent offset when the
+# function has several outputs, which dynamo cannot trace with fullgraph=True
+# (UserError "Could not extract specialized integer from data-dependent
+# expression"; (q.sin(), q.cos()) fails alike, torch 2.13 traces it): the
+# registration targets, whose outputs are (R, t, s), raise it there.
+_JACREV_MULTI_OUTPUT_FULLGRAPH = pytest.mark.xfail(
+    release_of(torch.__version__) < (2, 13), raises=torch._dynamo.exc.UserError, strict=True,
+    reason="torch 2.12: jacrev of a multi-output function cannot be traced with fullgraph=True")
+
+
+def _marks(target, transform, mode):
+    if target in ("rigid_registration", "RigidRegistration") and transform == "jacrev" and mode == "fullgraph":
+        return [_JACREV_MULTI_OUTPUT_FULLGRAPH]
+    return []
+
+
 # Ordered so that each compiled function serves its cells one after another.
 CASES = [
-    pytest.param(target, name, transform, mode, path, id=f"{target}-{name}-{transform}-{mode}-{path}")
+    pytest.param(target, name, transform, mode, path, id=f"{target}-{name}-{transform}-{mode}-{path}",
+                 marks=_marks(target, transform, mode))
     for target in TARGETS for transform in TRANSFORMS for mode in MODES if _runs(target, transform, mode)
     for t, name in TARGET_INPUTS if t == target for path in PATHS
 ]
