@@ -88,7 +88,7 @@ SANITIZE_FLAGS = (
 
 # The sources of the operators (registration, checks, autograd, the Python
 # entry and the ISA dispatch), compiled with the common flags.
-OPERATOR_SOURCES = sorted(glob.glob("csrc/*.cpp")) + ["csrc/cpu/dispatch.cpp"]
+OPERATOR_SOURCES = sorted(glob.glob("csrc/*.cpp") + glob.glob("csrc/ops/*.cpp")) + ["csrc/cpu/dispatch.cpp"]
 BASELINE_KERNELS = [  # (source, flags): every target
     ("csrc/cpu/kernel_scalar.cpp", ["-DCPU_CAPABILITY=SCALAR"]),
     ("csrc/cpu/kernel_default.cpp", ["-DCPU_CAPABILITY=DEFAULT", "-DCPU_CAPABILITY_DEFAULT"]),

@@ -161,7 +161,8 @@ bool out_needs_derivative(const at::Tensor& M, const at::Tensor& out) {
 
 void fit_rotation_out_autograd(c10::DispatchKeySet keys, const at::Tensor& M, const std::optional<at::Tensor>& init,
                                std::optional<int64_t> max_iter, c10::string_view variant, const at::Tensor& out) {
-  TORCH_CHECK_VALUE(!out_needs_derivative(M, out), messages::kOpName, messages::kOutAutograd);
+  TORCH_CHECK_VALUE(!out_needs_derivative(M, out),
+                    messages::format(messages::kOutAutograd, {{"op", messages::kOpName}}));
   static const auto op = find_operator<FitRotationOutSignature>("torchrot::fit_rotation_out");
   at::AutoDispatchBelowAutograd below;
   op.redispatch(keys & c10::after_autograd_keyset, M, init, max_iter, variant, out);

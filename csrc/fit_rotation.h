@@ -17,6 +17,21 @@ enum class Variant : int8_t {
   kGershgorin = 2,    // c from Eq. 27 with lambda_2 bounded by Eq. 28.
 };
 
+// The variants by the names the operators take (variant="..."), and the one
+// used when none is given (the schemas' default, ops/schemas.cpp; Python's
+// through torchrot._C.constants()).
+struct VariantName {
+  const char* name;
+  Variant variant;
+};
+inline constexpr VariantName kVariantNames[] = {
+    {"newton", Variant::kNewton}, {"conservative", Variant::kConservative}, {"gershgorin", Variant::kGershgorin}};
+#define TORCHROT_DEFAULT_VARIANT "conservative"
+
+// The dtypes the operators take: float32 and float64 are computed as they
+// are, float16 and bfloat16 in float32.
+inline constexpr at::ScalarType kSupportedDtypes[] = {at::kFloat, at::kDouble, at::kHalf, at::kBFloat16};
+
 // max_iter <= 0 means "iterate each matrix to convergence".
 struct FitOptions {
   int64_t max_iter = 0;
@@ -36,8 +51,12 @@ enum class FitStatus : uint8_t {
   kNonFinite = 3,  // M or init held NaN/Inf: the result is NaN
 };
 
-// The kernel object fit_rotation_cpu uses now in the calling thread:
-// "scalar", "default", "avx2" or "avx512" (see cpu/dispatch.cpp).
+// The names of the CPU kernel objects, lowest level first: "scalar",
+// "default", "avx2", "avx512" (see cpu/dispatch.cpp).
+inline constexpr const char* kCpuKernelNames[] = {"scalar", "default", "avx2", "avx512"};
+
+// The kernel object fit_rotation_cpu uses now in the calling thread (one of
+// kCpuKernelNames).
 std::string cpu_kernel_name();
 
 // Whether that kernel rounds a * b + c once, as the scalar kernel does: then

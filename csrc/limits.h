@@ -2,7 +2,7 @@
 // (kernel/fit_rotation_impl.h), the operator checks and schemas (ops.cpp) read
 // them here; Python reads them through torchrot._C.constants() (module.cpp),
 // so the fake kernels, the argument checks and the pure-PyTorch path
-// (torchrot/_limits.py, torchrot/reference.py) cannot drift from the kernel.
+// (torchrot/_constants.py, torchrot/reference.py) cannot drift from the kernel.
 // Nothing here depends on the instruction set.
 #pragma once
 

@@ -12,7 +12,9 @@
 
 #include <cstdint>
 #include <initializer_list>
+#include <iterator>
 #include <optional>
+#include <string>
 #include <utility>
 
 #include "fit_rotation.h"
@@ -54,13 +56,53 @@ PyObject* status_codes() {
                             code);
 }
 
+// {key: template} of every message of messages.h, its static fields filled.
 PyObject* messages() {
   using namespace torchrot::messages;
-  return dict_of<const char*>({{"OP_NAME", kOpName},
-                               {"BACKWARD_NAME", kBackwardName},
-                               {"OUT_AUTOGRAD", kOutAutograd},
-                               {"OUT_INFERENCE", kOutInference}},
-                              PyUnicode_FromString);
+  PyObject* dict = PyDict_New();
+  if (dict == nullptr) return nullptr;
+  bool ok = set_item(dict, "OP_NAME", PyUnicode_FromString(kOpName)) &&
+            set_item(dict, "BACKWARD_NAME", PyUnicode_FromString(kBackwardName));
+  for (const Message& message : kAll) {
+    ok = ok && set_item(dict, message.key, PyUnicode_FromString(format(message).c_str()));
+  }
+  if (!ok) {
+    Py_DECREF(dict);
+    return nullptr;
+  }
+  return dict;
+}
+
+// A tuple of the n strings name(0), ..., name(n - 1).
+template <class Name>
+PyObject* tuple_of(size_t n, Name name) {
+  PyObject* tuple = PyTuple_New(static_cast<Py_ssize_t>(n));
+  if (tuple == nullptr) return nullptr;
+  for (size_t i = 0; i < n; ++i) {
+    const std::string text = name(i);
+    PyObject* item = PyUnicode_FromString(text.c_str());
+    if (item == nullptr) {
+      Py_DECREF(tuple);
+      return nullptr;
+    }
+    PyTuple_SET_ITEM(tuple, static_cast<Py_ssize_t>(i), item);
+  }
+  return tuple;
+}
+
+// The names of the variants, the supported dtypes ("float32", ...) and the
+// CPU kernel objects, in their order.
+PyObject* variant_names() {
+  return tuple_of(std::size(torchrot::kVariantNames), [](size_t i) { return torchrot::kVariantNames[i].name; });
+}
+
+PyObject* dtype_names() {
+  return tuple_of(std::size(torchrot::kSupportedDtypes),
+                  [](size_t i) { return std::string(c10::getDtypeNames(torchrot::kSupportedDtypes[i]).first); });
+}
+
+PyObject* cpu_kernel_names() {
+  return tuple_of(std::size(torchrot::kCpuKernelNames), [](size_t i) { return torchrot::kCpuKernelNames[i]; });
 }
 
 PyObject* constants(PyObject*, PyObject*) {
@@ -68,6 +110,10 @@ PyObject* constants(PyObject*, PyObject*) {
   PyObject* dict = PyDict_New();
   if (dict == nullptr) return nullptr;
   const bool ok = set_item(dict, "FIT_STATUS", status_codes()) && set_item(dict, "MESSAGES", messages()) &&
+                  set_item(dict, "VARIANTS", variant_names()) &&
+                  set_item(dict, "DEFAULT_VARIANT", PyUnicode_FromString(TORCHROT_DEFAULT_VARIANT)) &&
+                  set_item(dict, "DTYPES", dtype_names()) &&
+                  set_item(dict, "CPU_KERNELS", cpu_kernel_names()) &&
                   set_item(dict, "DEFAULT_GRADIENT_EPS", PyFloat_FromDouble(kDefaultGradientEps)) &&
                   set_item(dict, "MAX_GRADIENT_EPS", PyFloat_FromDouble(kMaxGradientEps)) &&
                   set_item(dict, "MAX_ITER", PyLong_FromLongLong(kMaxIter)) &&

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 import torchrot  # noqa: F401  (registers torch.ops.torchrot.*)
+from torchrot._constants import VARIANTS
 from torchrot.testing import CRITERIA, dtype_id, make_matrices, rotation_errors
 
 DTYPES = (torch.float32, torch.float64)
-VARIANTS = ("newton", "conservative", "gershgorin")
 
 
 @pytest.fixture

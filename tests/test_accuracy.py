@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import torchrot
-from torchrot._limits import CONVERGED_CAP, MAX_ESCAPES
+from torchrot._constants import CONVERGED_CAP, MAX_ESCAPES
 from torchrot.reference import cayley_rotation, fit_rotation_reference
 from torchrot.testing import (
     dtype_id,

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torchrot
-from torchrot._limits import INIT_TOLERANCE
+from torchrot._constants import INIT_TOLERANCE
 from torchrot.testing import CRITERIA, make_matrices, rotation_errors, rotation_svd, rotations, tiled_view
 
 op = torch.ops.torchrot

@@ -15,8 +15,9 @@ import torch
 from torch.autograd import forward_ad
 from torch.func import grad, jacfwd, jacrev, jvp, vmap
 
+from torchrot._constants import CPU_KERNELS
 import torchrot
-from torchrot._limits import GRADIENT_EPS
+from torchrot._constants import GRADIENT_EPS
 from torchrot._torch_private import below_autograd
 from torchrot.reference import fit_rotation_backward_reference
 from torchrot.testing import (
@@ -34,7 +35,7 @@ from torchrot.testing import (
 
 op = torch.ops.torchrot
 DTYPES = (torch.float32, torch.float64)
-ISAS = ("scalar", "default", "avx2", "avx512")
+ISAS = CPU_KERNELS
 SMOOTH = ("warm", "rot60", "uniform", "gaussian", "det_negative", "symmetric")
 
 

@@ -21,7 +21,7 @@ import pytest
 import torch
 
 import torchrot
-from torchrot._limits import MAX_GRADIENT_EPS, MAX_ITER
+from torchrot._constants import MAX_GRADIENT_EPS, MAX_ITER
 from torchrot.testing import generic_kernel, make_matrices
 
 op = torch.ops.torchrot

@@ -46,13 +46,13 @@ import torch
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
+from torchrot._constants import CPU_KERNELS, VARIANTS
 import torchrot
 from torchrot.reference import quaternion_rotation, rotation_svd
 from torchrot.testing import CRITERIA, DISTRIBUTIONS, bits, cpu_kernel, dtype_id, random_rotations, rounds_like_scalar
 
 DTYPES = (torch.float32, torch.float64)
-VARIANTS = ("newton", "conservative", "gershgorin")
-ISAS = ("scalar", "default", "avx2", "avx512")
+ISAS = CPU_KERNELS
 
 
 def _supported_isas() -> tuple[str, ...]:

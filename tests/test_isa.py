@@ -31,6 +31,7 @@ import sys
 import pytest
 import torch
 
+from torchrot._constants import CPU_KERNELS, VARIANTS
 import torchrot
 from torchrot.testing import (
     bits,
@@ -50,10 +51,9 @@ from torchrot.testing import (
 from torchrot.testing import cpu_kernel as forced_kernel
 
 DTYPES = (torch.float32, torch.float64)
-VARIANTS = ("newton", "conservative", "gershgorin")
 
 ENV = "TORCHROT_CPU_CAPABILITY"
-ISAS = ("scalar", "default", "avx2", "avx512")  # lowest to highest
+ISAS = CPU_KERNELS  # lowest to highest
 ISA_LEVEL = {name: level for level, name in enumerate(ISAS)}
 SIMD_ISAS = ISAS[1:]
 

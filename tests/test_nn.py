@@ -14,7 +14,7 @@ import torch.multiprocessing as mp
 from torch import nn
 
 import torchrot
-from torchrot._limits import GRADIENT_EPS
+from torchrot._constants import GRADIENT_EPS
 from torchrot.nn import RigidRegistration, RotationFit
 from torchrot.testing import make_matrices, random_rotations
 
@@ -62,6 +62,7 @@ def test_options_and_init_are_forwarded():
 CONSTRUCTOR_ERRORS = [
     ({"max_iter": 0}, ValueError, "max_iter must be None"),
     ({"max_iter": -3}, ValueError, "max_iter must be None"),
+    ({"max_iter": 1001}, ValueError, r"max_iter must be None \(iterate to convergence\) or an int >= 1 and <= 1000"),
     ({"max_iter": 2.0}, TypeError, "max_iter must be None or an int"),
     ({"max_iter": True}, TypeError, "max_iter must be None or an int"),
     ({"variant": "svd"}, ValueError, "variant must be one of"),
@@ -88,7 +89,7 @@ def test_gradient_eps_default_applies_unless_set(monkeypatch):
         return fit(M, init, **options)
 
     M = gaussian((3,), 5)
-    monkeypatch.setattr(torchrot, "fit_rotation", recording_fit)
+    monkeypatch.setattr(torchrot.nn, "fit_rotation", recording_fit)
     RotationFit(gradient_eps=1e-4)(M)
     assert seen[-1]["gradient_eps"] == 1e-4
     RotationFit()(M)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torchrot
-from torchrot._limits import GRADIENT_EPS
+from torchrot._constants import GRADIENT_EPS
 from torchrot.testing import (
     WELL_CONDITIONED, make_matrices, make_warm_start, rotation_svd, rotations, soa_view, tiled_view,
 )

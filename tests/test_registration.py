@@ -226,7 +226,7 @@ def test_init_is_forwarded_as_warm_start(monkeypatch):
         seen.append(init)
         return fit(M, init, **options)
 
-    monkeypatch.setattr(torchrot, "fit_rotation", recording_fit)
+    monkeypatch.setattr(torchrot.registration, "fit_rotation", recording_fit)
     warm = torchrot.rigid_registration(x, y, init=R)
     assert seen and seen[-1] is R
     assert_close(warm.R, cold.R, 1e-12, "R")
@@ -247,7 +247,7 @@ def test_init_of_any_float_dtype_goes_to_fit_rotation_as_it_is(dtype, init_dtype
     init = R.to(init_dtype)
     seen = []
     fit = torchrot.fit_rotation
-    monkeypatch.setattr(torchrot, "fit_rotation", lambda M, init=None, **kw: seen.append(init) or fit(M, init, **kw))
+    monkeypatch.setattr(torchrot.registration, "fit_rotation", lambda M, init=None, **kw: seen.append(init) or fit(M, init, **kw))
     out = torchrot.rigid_registration(x.to(dtype), y.to(dtype), init=init)
     assert seen[-1] is init
     assert out.R.dtype == dtype

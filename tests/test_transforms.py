@@ -1,7 +1,7 @@
 """torch.func transforms of fit_rotation, the operator, rigid_registration and
 the nn modules: in eager and under torch.compile (with and without
 fullgraph=True), on the CPU kernel and on the device-generic path (the
-pure-PyTorch kernels that torchrot/_ops.py registers for other devices, run on
+pure-PyTorch kernels that torchrot/_device_kernels.py registers for other devices, run on
 CPU tensors by torchrot.testing.generic_kernel).
 
 Every cell of the matrix must give the eager CPU answer: eager on the CPU
@@ -47,13 +47,13 @@ SECOND_DERIVATIVE = "second derivatives are not implemented"
 @pytest.fixture
 def reference_calls(monkeypatch):
     """Counts the calls of the pure-PyTorch reference behind the
-    device-generic kernels (they look it up in torchrot._ops at each call)."""
+    device-generic kernels (they look it up in torchrot._device_kernels at each call)."""
     calls = collections.Counter()
     for name in ("fit_rotation_reference", "fit_rotation_backward_reference"):
-        def counting(*args, _name=name, _function=getattr(torchrot._ops, name), **kwargs):
+        def counting(*args, _name=name, _function=getattr(torchrot._device_kernels, name), **kwargs):
             calls[_name] += 1
             return _function(*args, **kwargs)
-        monkeypatch.setattr(torchrot._ops, name, counting)
+        monkeypatch.setattr(torchrot._device_kernels, name, counting)
     return calls
 
 

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 import torchrot
-from torchrot._limits import INIT_TOLERANCE
+from torchrot._constants import INIT_TOLERANCE
 from torchrot.testing import (
     CRITERIA,
     available_cpu_kernels,

@@ -15,12 +15,15 @@ _C = load_extension()  # registers torch.ops.torchrot.*; ImportError if built fo
 # The CPU kernel is chosen once, now: TORCHROT_CPU_CAPABILITY is read here
 # (a bad value fails the import with a ValueError naming it), never again.
 torch.ops.torchrot.cpu_kernel()
-from torchrot._limits import GRADIENT_EPS as DEFAULT_GRADIENT_EPS
-from torchrot._limits import FitStatus
-from torchrot._ops import FitInfo, fit_rotation, fit_rotation_info  # also registers autograd (_autograd)
-from torchrot.reference import fit_rotation_reference, rotation_svd
-from torchrot.registration import RigidTransform, rigid_registration
-from torchrot import nn  # noqa: E402  (after fit_rotation: nn calls torchrot.fit_rotation)
+# The operators' kernels registered in Python: derivatives (Autograd, vmap,
+# autocast), fake kernels, and the kernels of devices without a native one.
+from torchrot import _autograd, _device_kernels, _fake  # noqa: E402, F401
+from torchrot._constants import GRADIENT_EPS as DEFAULT_GRADIENT_EPS  # noqa: E402
+from torchrot._constants import FitStatus  # noqa: E402
+from torchrot.fitting import FitInfo, fit_rotation, fit_rotation_info  # noqa: E402
+from torchrot.reference import fit_rotation_reference, rotation_svd  # noqa: E402
+from torchrot.registration import RigidTransform, rigid_registration  # noqa: E402
+from torchrot import nn  # noqa: E402
 
 __all__ = [
     "DEFAULT_GRADIENT_EPS",

@@ -35,7 +35,7 @@ from __future__ import annotations
 import torch
 from torch.autograd import forward_ad
 
-from torchrot._limits import GRADIENT_EPS
+from torchrot._constants import DEFAULT_VARIANT, GRADIENT_EPS
 from torchrot._torch_private import (
     after_autograd_keyset,
     any_requires_grad,
@@ -51,6 +51,8 @@ from torchrot._torch_private import (
     single_level_function,
     unwrap_dead_wrappers,
 )
+
+__all__ = ["FitRotationFunction", "rotation_tangent"]
 
 
 def rotation_tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: float) -> torch.Tensor:
@@ -254,7 +256,7 @@ def _leading(x: torch.Tensor | None, bdim: int | None, rank: int, size: int) -> 
 
 
 @torch.library.register_vmap("torchrot::fit_rotation")
-def _fit_rotation_vmap(info, in_dims, M, init=None, max_iter=None, variant="conservative",
+def _fit_rotation_vmap(info, in_dims, M, init=None, max_iter=None, variant=DEFAULT_VARIANT,
                        gradient_eps=GRADIENT_EPS):
     in_dims = tuple(in_dims) + (None,) * (2 - len(in_dims))  # defaulted arguments have no entry
     rank = max(M.dim() - (in_dims[0] is not None), 0 if init is None else init.dim() - (in_dims[1] is not None))

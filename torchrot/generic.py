@@ -37,7 +37,7 @@ import math
 import torch
 
 from torchrot._torch_private import compile_errors
-from torchrot._limits import (
+from torchrot._constants import (
     CONVERGED_CAP,
     ESTIMATE_SWITCH,
     GERSHGORIN_STEPS,
@@ -112,7 +112,7 @@ def _mul(A, B):
 
 
 def _dtype_name(dtype: torch.dtype) -> str:
-    """"float32" for torch.float32: the key of torchrot._limits' per-dtype tables."""
+    """"float32" for torch.float32: the key of torchrot._constants' per-dtype tables."""
     return str(dtype).removeprefix("torch.")
 
 

@@ -14,8 +14,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-import torchrot
-from torchrot._checks import VARIANTS, check_gradient_eps
+from torchrot._checks import check_gradient_eps, check_max_iter, check_variant
+from torchrot._constants import DEFAULT_VARIANT
+from torchrot.fitting import fit_rotation
 from torchrot.registration import RigidTransform, rigid_registration
 
 __all__ = ["RotationFit", "RigidRegistration"]
@@ -37,18 +38,13 @@ class RotationFit(nn.Module):
             :func:`torchrot.fit_rotation`); ``None`` uses the library default.
     """
 
-    def __init__(self, max_iter: int | None = None, variant: str = "conservative",
+    def __init__(self, max_iter: int | None = None, variant: str = DEFAULT_VARIANT,
                  gradient_eps: float | None = None) -> None:
         super().__init__()
-        if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int)):
-            raise TypeError(f"RotationFit: max_iter must be None or an int >= 1, got {max_iter!r}")
-        if max_iter is not None and max_iter < 1:
-            raise ValueError(f"RotationFit: max_iter must be None (converge) or >= 1, got {max_iter}")
-        if variant not in VARIANTS:
-            raise ValueError(f"RotationFit: variant must be one of {', '.join(map(repr, VARIANTS))}, "
-                             f"got {variant!r}")
+        check_max_iter(max_iter, "RotationFit")
+        check_variant(variant, "RotationFit")
         if gradient_eps is not None:
-            check_gradient_eps(gradient_eps, name="RotationFit")
+            check_gradient_eps(gradient_eps, "RotationFit")
         self.max_iter = max_iter
         self.variant = variant
         self.gradient_eps = gradient_eps
@@ -59,8 +55,8 @@ class RotationFit(nn.Module):
         ``init``: optional warm-start rotations ``(..., 3, 3)`` broadcastable
         to the batch (no gradient flows to it).
         """
-        return torchrot.fit_rotation(as_matrices(M), init, max_iter=self.max_iter, variant=self.variant,
-                                     gradient_eps=self.gradient_eps)
+        return fit_rotation(as_matrices(M), init, max_iter=self.max_iter, variant=self.variant,
+                            gradient_eps=self.gradient_eps)
 
     def extra_repr(self) -> str:
         return f"max_iter={self.max_iter}, variant={self.variant!r}, gradient_eps={self.gradient_eps}"

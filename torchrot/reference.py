@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 
 from torchrot._checks import bad_init_error, check_all, check_backward, check_matrix_arg
-from torchrot._limits import GRADIENT_EPS
+from torchrot._constants import GRADIENT_EPS
 from torchrot.generic import fit_rotation_backward_generic, fit_rotation_generic
 
 

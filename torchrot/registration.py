@@ -24,13 +24,15 @@ from typing import NamedTuple
 
 import torch
 
-import torchrot
 from torchrot._checks import broadcast_shapes
+from torchrot._constants import SUPPORTED_DTYPES
 from torchrot._torch_private import is_functorch_wrapped
+from torchrot.fitting import fit_rotation
+
+__all__ = ["MIN_POINTS", "RigidTransform", "rigid_registration"]
 
 _NAME = "torchrot.rigid_registration"
 _COMPUTE_IN_FLOAT32 = (torch.float16, torch.bfloat16)
-_SUPPORTED_DTYPES = (torch.float32, torch.float64, *_COMPUTE_IN_FLOAT32)
 MIN_POINTS = 3
 
 
@@ -144,7 +146,7 @@ def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor
     xc_weighted = xc * p_row
     # M = sum_i p_i yc_i xc_i^T: (..., 3, N) @ (..., N, 3).
     M = _matmul(yc, xc_weighted.mT)
-    R = torchrot.fit_rotation(M, init)
+    R = fit_rotation(M, init)
     if scale:
         variance_x = (xc_weighted * xc).sum((-2, -1))  # sum_i p_i |xc_i|^2
         # sum_i p_i |x_i|^2 = variance_x + |x̄|^2 (without another pass over the points)
@@ -185,7 +187,7 @@ def _check_arguments(x, y, weights, scale, init) -> None:
             raise TypeError(f"{_NAME}: {name} must be a torch.Tensor, got {type(value).__name__}")
         if value.dim() < 2 or value.shape[-1] != 3:
             raise ValueError(f"{_NAME}: {name} must have shape (..., N, 3), got {list(value.shape)}")
-        if value.dtype not in _SUPPORTED_DTYPES:
+        if value.dtype not in SUPPORTED_DTYPES:
             raise TypeError(f"{_NAME}: {name} must be float32, float64, float16 or bfloat16, got {value.dtype}")
     if y.dtype != x.dtype:
         raise TypeError(f"{_NAME}: y must have x's dtype ({x.dtype}), got {y.dtype}")
@@ -221,7 +223,7 @@ def _check_arguments(x, y, weights, scale, init) -> None:
 def _check_init(init, x: torch.Tensor, batch: torch.Size) -> None:
     if not isinstance(init, torch.Tensor):
         raise TypeError(f"{_NAME}: init must be None or a torch.Tensor, got {type(init).__name__}")
-    if init.dtype not in _SUPPORTED_DTYPES:  # any of them: fit_rotation casts init to its compute dtype
+    if init.dtype not in SUPPORTED_DTYPES:  # any of them: fit_rotation casts init to its compute dtype
         raise TypeError(f"{_NAME}: init must be float32, float64, float16 or bfloat16, got {init.dtype}")
     if init.device != x.device:
         raise ValueError(f"{_NAME}: init must be on x's device ({x.device}), got {init.device}")

@@ -27,14 +27,15 @@
 #include <string>
 
 #include "../fit_rotation.h"
+#include "../messages.h"
 #include "kernel_table.h"
 
 namespace torchrot {
 namespace {
 
+// The levels of kCpuKernelNames, in its order.
 enum class Isa : int { kScalar = 0, kDefault = 1, kAvx2 = 2, kAvx512 = 3 };
 
-constexpr const char* kIsaNames[] = {"scalar", "default", "avx2", "avx512"};
 constexpr const char* kEnvironmentVariable = "TORCHROT_CPU_CAPABILITY";
 
 Isa hardware_isa() {
@@ -52,9 +53,9 @@ Isa hardware_isa() {
 // The level named `text` (case-insensitive), capped at the hardware's.
 Isa parse_isa(const char* text, const char* what) {
   for (int i = 0; i < 4; ++i) {
-    if (strcasecmp(text, kIsaNames[i]) == 0) return std::min(static_cast<Isa>(i), hardware_isa());
+    if (strcasecmp(text, kCpuKernelNames[i]) == 0) return std::min(static_cast<Isa>(i), hardware_isa());
   }
-  TORCH_CHECK_VALUE(false, what, " must be one of scalar, default, avx2, avx512; got '", text, "'");
+  TORCH_CHECK_VALUE(false, messages::format(messages::kCpuKernel, {{"what", what}, {"value", text}}));
 }
 
 // The process-wide level: TORCHROT_CPU_CAPABILITY as it was at the first call
@@ -130,7 +131,7 @@ std::string cpu_kernel_name() { return kernels(selected_isa()).name; }
 bool cpu_kernel_fuses_multiply_add() { return kernels(selected_isa()).fused_multiply_add; }
 
 std::string set_thread_cpu_kernel(const std::string& name) {
-  const std::string previous = forced_isa >= 0 ? kIsaNames[forced_isa] : "";
+  const std::string previous = forced_isa >= 0 ? kCpuKernelNames[forced_isa] : "";
   if (name.empty()) {
     forced_isa = -1;
   } else {

@@ -21,3 +21,5 @@ Requires SciPy and libigl (``pip install torchrot[bench]``).
 Convention everywhere: R maximises tr(R^T M) (column vectors; M = sum_i w_i
 y_i x_i^T gives R x_i ~ y_i).
 """
+
+__all__ = ["arap", "elasticity", "local_step", "meshes", "sparse"]

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import contextlib
 
+__all__ = ["phase"]
+
 
 def phase(timer, name: str):
     """``timer.phase(name)``, or a no-op context without a timer."""

@@ -30,6 +30,8 @@ from torchrot.apps._phases import phase
 from torchrot.apps.local_step import LocalStep
 from torchrot.apps.sparse import SpdSolver, torch_csr
 
+__all__ = ["ArapSolver", "ArapState", "cotangent_weights"]
+
 Tensor = torch.Tensor
 
 

@@ -44,6 +44,8 @@ from torchrot.apps._phases import phase
 from torchrot.apps.local_step import LocalStep
 from torchrot.apps.sparse import SpdSolver, torch_csr
 
+__all__ = ["ElasticState", "ElasticitySolver", "Material", "barycentric_gradients"]
+
 Tensor = torch.Tensor
 
 

@@ -15,7 +15,12 @@ from dataclasses import dataclass
 
 import torch
 
-import torchrot
+from torchrot._checks import check_variant
+from torchrot._constants import DEFAULT_VARIANT
+from torchrot.fitting import fit_rotation
+from torchrot.reference import rotation_svd
+
+__all__ = ["METHODS", "LocalStep", "keep_better", "objective"]
 
 Tensor = torch.Tensor
 
@@ -45,15 +50,13 @@ class LocalStep:
     """
 
     method: str = "one_step"
-    variant: str = "conservative"
+    variant: str = DEFAULT_VARIANT
     monotone: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"LocalStep: method must be one of {sorted(METHODS)}, got {self.method!r}")
-        if self.variant not in ("newton", "conservative", "gershgorin"):
-            raise ValueError(f"LocalStep: variant must be 'newton', 'conservative' or 'gershgorin', "
-                             f"got {self.variant!r}")
+        check_variant(self.variant, "LocalStep")
 
     @property
     def label(self) -> str:
@@ -67,13 +70,13 @@ class LocalStep:
         result of M's dtype (with ``monotone``, not ``R_prev`` itself).
         Returns ``(n, 3, 3)`` rotations of M's dtype."""
         if self.method == "svd":
-            R = torchrot.rotation_svd(M)
+            R = rotation_svd(M)
             return R if out is None else out.copy_(R)
         if self.method == "converged" or R_prev is None:
-            return torchrot.fit_rotation(M, R_prev, variant=self.variant, out=out)
+            return fit_rotation(M, R_prev, variant=self.variant, out=out)
         if self.monotone and out is not None and out.data_ptr() == R_prev.data_ptr():
             raise ValueError("LocalStep: with monotone=True, out must not be R_prev (it is compared with it)")
-        R = torchrot.fit_rotation(M, R_prev, max_iter=1, variant=self.variant, out=out)
+        R = fit_rotation(M, R_prev, max_iter=1, variant=self.variant, out=out)
         if self.monotone:
             keep_better(R, R_prev, M)
         return R

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+__all__ = ["BUILTIN", "Mesh", "capsule", "end_regions", "load_surface", "octopus"]
+
 
 @dataclass(frozen=True)
 class Mesh:

@@ -9,6 +9,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 import torch
 
+__all__ = ["SpdSolver", "torch_csr"]
+
 
 def torch_csr(A: sp.spmatrix, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """A SciPy sparse matrix as a torch sparse CSR tensor (for ``A @ dense``)."""

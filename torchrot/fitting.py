@@ -1,8 +1,9 @@
-"""Python API over torch.ops.torchrot.*, plus the fake and non-CPU kernels.
+"""The public fitting functions: thin wrappers over the operators
+torch.ops.torchrot.fit_rotation / fit_rotation_out / fit_rotation_info
+(schemas: csrc/ops/schemas.cpp), with their argument checks.
 
-The operator schemas and the CPU kernels are registered in C++ (csrc/ops.cpp).
-Here: the thin public wrappers, the fake kernels that let torch.compile trace
-the ops, and the pure-PyTorch kernel (torchrot.reference) for other devices.
+Convention: R (det +1) maximises tr(R^T M), the rotation nearest to M;
+column vectors, M = sum_i w_i y_i x_i^T gives R x_i ~ y_i.
 """
 from __future__ import annotations
 
@@ -10,11 +11,9 @@ from typing import NamedTuple
 
 import torch
 
-import torchrot._autograd  # noqa: F401  (registers the operators' derivatives)
 from torchrot import _C
 from torchrot._checks import (
     check_all,
-    check_backward,
     check_gradient_eps,
     check_gradient_eps_type,
     check_max_iter_type,
@@ -23,11 +22,10 @@ from torchrot._checks import (
     check_tensor,
     check_variant_type,
 )
-from torchrot._limits import GRADIENT_EPS
-from torchrot._torch_private import below_autograd, forward_level, functorch_transforms_active, is_non_overlapping_and_dense
-from torchrot.reference import fit_rotation_backward_reference, fit_rotation_reference
+from torchrot._constants import DEFAULT_VARIANT, GRADIENT_EPS
+from torchrot._torch_private import below_autograd, forward_level, functorch_transforms_active
 
-_OTHER_DEVICES = ("cuda", "xpu", "mps")
+__all__ = ["FitInfo", "fit_rotation", "fit_rotation_info"]
 
 # The operators, bound once (a lookup through torch.ops costs about a
 # microsecond a call), the direct entry of plain eager calls (csrc/module.cpp:
@@ -35,6 +33,7 @@ _OTHER_DEVICES = ("cuda", "xpu", "mps")
 # needed) and the dtypes that entry takes.
 _fit_rotation_op = torch.ops.torchrot.fit_rotation.default
 _fit_rotation_out_op = torch.ops.torchrot.fit_rotation_out.default
+_fit_rotation_info_op = torch.ops.torchrot.fit_rotation_info.default
 _fit_rotation_eager = _C.fit_rotation_eager
 _EAGER_DTYPES = (torch.float32, torch.float64)
 
@@ -59,7 +58,7 @@ def fit_rotation(
     init: torch.Tensor | None = None,
     *,
     max_iter: int | None = None,
-    variant: str = "conservative",
+    variant: str = DEFAULT_VARIANT,
     gradient_eps: float | None = None,
     out: torch.Tensor | None = None,
 ) -> torch.Tensor:
@@ -178,7 +177,7 @@ def fit_rotation(
 def _check_call(M, init, max_iter, variant, gradient_eps, out=None, compiling: bool | None = None) -> None:
     """The wrapper's share of the argument checks. Eager: the types that the
     operator's schema would reject with a generic RuntimeError; the operator
-    checks the rest (csrc/ops.cpp). While torch.compile traces: all of them,
+    checks the rest (csrc/ops/checks.cpp). While torch.compile traces: all of them,
     in the operator's order, so that a bad argument raises its own TypeError /
     ValueError (a graph break runs it eagerly) instead of an error wrapped by
     the tracer around the fake kernel's. ``compiling``: torch.compiler.is_compiling(),
@@ -236,7 +235,7 @@ def fit_rotation_info(
     init: torch.Tensor | None = None,
     *,
     max_iter: int | None = None,
-    variant: str = "conservative",
+    variant: str = DEFAULT_VARIANT,
 ) -> FitInfo:
     """:func:`fit_rotation` plus per-matrix diagnostics.
 
@@ -256,120 +255,4 @@ def fit_rotation_info(
     Raises: the errors of :func:`fit_rotation`.
     """
     _check_call(M, init, max_iter, variant, None)
-    return FitInfo(*torch.ops.torchrot.fit_rotation_info(M, init, max_iter, variant))
-
-
-# ---- fake kernels (shape propagation for torch.compile / FakeTensor / meta) ----
-
-
-def has_soa_layout(t: torch.Tensor) -> bool:
-    """Whether ``t`` is in structure-of-arrays layout (csrc/ops.cpp's
-    has_soa_layout): dense, the matrix index of stride 1 across all its batch
-    dimensions (e.g. ``S.permute(2, 0, 1)`` of a (3, 3, N) S) or within tiles
-    (``torchrot.testing.tiled_view``): its trailing batch dimensions flatten
-    to one of stride 1 and more than one matrix, its leading ones to one stride."""
-    if t.dim() < 3:
-        return False
-    batch = [(t.shape[d], t.stride(d)) for d in range(t.dim() - 2) if t.shape[d] != 1]
-    leading, run = len(batch), 1
-    while leading > 0 and batch[leading - 1][1] == run:
-        leading -= 1
-        run *= batch[leading][0]
-    if run == 1:
-        return False
-    if any(batch[d][1] != batch[d + 1][1] * batch[d + 1][0] for d in range(leading - 1)):
-        return False
-    return is_non_overlapping_and_dense(t)
-
-
-def _empty_result(M: torch.Tensor) -> torch.Tensor:
-    """A new result of M's shape, laid out as the C++ kernels lay it out
-    (new_result in csrc/ops.cpp): M's layout if structure of arrays, else contiguous."""
-    if has_soa_layout(M):
-        return torch.empty_strided(M.shape, M.stride(), dtype=M.dtype, device=M.device)
-    return torch.empty(M.shape, dtype=M.dtype, device=M.device)
-
-
-@torch.library.register_fake("torchrot::fit_rotation")
-def _fit_rotation_fake(M, init=None, max_iter=None, variant="conservative", gradient_eps=GRADIENT_EPS):
-    check_all(M, init, max_iter, variant)
-    check_gradient_eps(gradient_eps)
-    return _empty_result(M)
-
-
-@torch.library.register_fake("torchrot::fit_rotation_out")
-def _fit_rotation_out_fake(M, init, max_iter, variant, out):
-    check_all(M, init, max_iter, variant)
-    check_out(M, out)
-
-
-@torch.library.register_fake("torchrot::fit_rotation_backward")
-def _fit_rotation_backward_fake(grad, R, M, gradient_eps=GRADIENT_EPS):
-    check_backward(grad, R, M, gradient_eps)
-    return _empty_result(R)
-
-
-@torch.library.register_fake("torchrot::_empty_op")
-def _empty_op_fake(M):
-    return None
-
-
-@torch.library.register_fake("torchrot::_empty_fit_rotation")
-def _empty_fit_rotation_fake(M, init=None, max_iter=None, variant="conservative", gradient_eps=GRADIENT_EPS):
-    return torch.empty(M.shape, dtype=M.dtype, device=M.device)
-
-
-@torch.library.register_fake("torchrot::fit_rotation_info")
-def _fit_rotation_info_fake(M, init=None, max_iter=None, variant="conservative"):
-    check_all(M, init, max_iter, variant)
-    batch = M.shape[:-2]
-    return (
-        _empty_result(M),
-        torch.empty(batch, dtype=torch.int32, device=M.device),
-        torch.empty(batch, dtype=torch.uint8, device=M.device),
-    )
-
-
-# ---- pure-PyTorch kernels for devices without a native one ----
-
-
-def _in_result_layout(like: torch.Tensor, result: torch.Tensor) -> torch.Tensor:
-    """``result`` laid out as the C++ kernel lays out a result for ``like``."""
-    if has_soa_layout(like) or not result.is_contiguous():
-        return _empty_result(like).copy_(result)
-    return result
-
-
-def _fit_rotation_other(M, init=None, max_iter=None, variant="conservative", gradient_eps=GRADIENT_EPS):
-    check_all(M, init, max_iter, variant)  # in the C++ operator's order
-    check_gradient_eps(gradient_eps)
-    return _in_result_layout(M, fit_rotation_reference(M, init, max_iter=max_iter, variant=variant))
-
-
-def _fit_rotation_out_other(M, init, max_iter, variant, out):
-    check_all(M, init, max_iter, variant)
-    check_out(M, out)
-    # Computed before out is written: out may overlap M or init in any way,
-    # and a call that raises leaves it as it was.
-    out.copy_(fit_rotation_reference(M, init, max_iter=max_iter, variant=variant))
-
-
-def _fit_rotation_backward_other(grad, R, M, gradient_eps=GRADIENT_EPS):
-    return _in_result_layout(R, fit_rotation_backward_reference(grad, R, M, gradient_eps))
-
-
-def _fit_rotation_info_other(M, init=None, max_iter=None, variant="conservative"):
-    R, iterations, status = fit_rotation_reference(M, init, max_iter=max_iter, variant=variant, return_info=True)
-    return _in_result_layout(M, R), iterations, status
-
-
-#: operator name -> its device-generic kernel (torchrot.testing.generic_kernel
-#: also runs them on CPU tensors).
-GENERIC_KERNELS = {
-    "fit_rotation": _fit_rotation_other,
-    "fit_rotation_out": _fit_rotation_out_other,
-    "fit_rotation_backward": _fit_rotation_backward_other,
-    "fit_rotation_info": _fit_rotation_info_other,
-}
-for _name, _kernel in GENERIC_KERNELS.items():
-    torch.library.register_kernel(f"torchrot::{_name}", _OTHER_DEVICES, _kernel)
+    return FitInfo(*_fit_rotation_info_op(M, init, max_iter, variant))

@@ -1,10 +1,11 @@
-"""torchrot's limits, defaults, tolerances, status codes and shared error
-messages, read from the C++ extension.
+"""torchrot's constants, read from the C++ extension: the limits, defaults
+and tolerances (csrc/limits.h), the variants, supported dtypes, CPU kernel
+names and status codes (csrc/fit_rotation.h), and the error messages
+(csrc/messages.h).
 
-They are defined once, in csrc/limits.h, csrc/fit_rotation.h and
-csrc/messages.h (explained there), and handed over by
+Each is defined once, in C++ (explained there), and handed over by
 ``torchrot._C.constants()``: the argument checks, the fake kernels and the
-pure-PyTorch path use exactly the kernel's values.
+pure-PyTorch path use exactly the kernel's values and words.
 """
 from __future__ import annotations
 
@@ -13,6 +14,13 @@ import enum
 import torch
 
 from torchrot import _C
+
+__all__ = [
+    "CONVERGED_CAP", "CPU_KERNELS", "DEFAULT_VARIANT", "ESTIMATE_SWITCH", "FitStatus", "GERSHGORIN_STEPS",
+    "GRADIENT_EPS", "INIT_CLEAN", "INIT_CLEAN_EPS", "INIT_CLEAN_STEPS", "INIT_TOLERANCE", "MAX_CHECK_SLACK_EPS",
+    "MAX_ESCAPES", "MAX_GRADIENT_EPS", "MAX_ITER", "MESSAGES", "OBJECTIVE_LAGUERRE_STEPS", "SUPPORTED_DTYPES",
+    "UNDAMPED", "VARIANTS",
+]
 
 _CONSTANTS = _C.constants()
 
@@ -28,8 +36,16 @@ FitStatus.__doc__ = """Per-matrix outcome of a fit, as :func:`torchrot.fit_rotat
 - ``NON_FINITE``: M or init held NaN/Inf; R is NaN.
 """
 
-#: Error messages shared by the C++ operator and the Python checks, by name.
+#: Every error message of the operators, by key, with its static fields
+#: (limits, variants, dtypes) filled: ``MESSAGES[key].format(op=..., name=...)``.
 MESSAGES: dict = _CONSTANTS["MESSAGES"]
+#: The Cayley-step variants by name (``variant="..."``), and the default.
+VARIANTS: tuple = _CONSTANTS["VARIANTS"]
+DEFAULT_VARIANT: str = _CONSTANTS["DEFAULT_VARIANT"]
+#: The dtypes the operators take (float16 and bfloat16 are computed in float32).
+SUPPORTED_DTYPES: tuple = tuple(getattr(torch, name) for name in _CONSTANTS["DTYPES"])
+#: The CPU kernel objects, lowest level first (torchrot.testing.cpu_kernel).
+CPU_KERNELS: tuple = _CONSTANTS["CPU_KERNELS"]
 
 #: Default damping of the derivative (the operator schemas' default).
 GRADIENT_EPS: float = _CONSTANTS["DEFAULT_GRADIENT_EPS"]

@@ -1,0 +1,83 @@
+"""Which kernel runs: the CPU kernel objects (forced per thread) and the
+device-generic kernels run on CPU tensors, so that the same tests check
+every path on any machine."""
+from __future__ import annotations
+
+import contextlib
+import warnings
+from typing import Iterator
+
+import torch
+
+from torchrot._constants import CPU_KERNELS
+
+__all__ = ['CPU_KERNELS', 'rounds_like_scalar', 'rounding_reference', 'cpu_kernel', 'available_cpu_kernels', 'generic_kernel']
+
+
+def rounds_like_scalar(name: str) -> bool:
+    """Whether CPU kernel ``name`` (capped at this CPU, as :func:`cpu_kernel`
+    caps it) gives the scalar kernel's results bit for bit: it rounds
+    ``a * b + c`` once, as the scalar kernel does. False only for x86-64's
+    "default" kernel, the one for CPUs without AVX2 and FMA
+    (csrc/kernel/mul_add.h); it meets the same accuracy criteria and is
+    bit-identical across its own batch sizes, layouts and threads."""
+    with cpu_kernel(name):
+        return bool(torch.ops.torchrot._cpu_kernel_fuses_multiply_add())
+
+def rounding_reference(name: str) -> str:
+    """The kernel whose results CPU kernel ``name`` reproduces bit for bit:
+    "scalar", or ``name`` itself where it rounds differently
+    (:func:`rounds_like_scalar`)."""
+    return "scalar" if rounds_like_scalar(name) else name
+
+@contextlib.contextmanager
+def cpu_kernel(name: str | None) -> Iterator[str]:
+    """``with cpu_kernel("scalar") as used: ...`` runs the calling thread's
+    torchrot calls on the CPU kernel object ``name`` (one of CPU_KERNELS,
+    case-insensitive), capped at what this CPU supports; ``None`` runs the
+    process-wide choice. ``used`` is the kernel that runs
+    (``torch.ops.torchrot.cpu_kernel()``). Other threads keep theirs: the
+    choice is per thread, so this is safe in multi-threaded tests. Nests.
+
+    The process-wide choice is the environment variable
+    TORCHROT_CPU_CAPABILITY, read once when torchrot is imported.
+    Raises ValueError for an unknown name.
+    """
+    previous = torch.ops.torchrot._set_cpu_kernel(name or "")
+    try:
+        yield torch.ops.torchrot.cpu_kernel()
+    finally:
+        torch.ops.torchrot._set_cpu_kernel(previous)
+
+def available_cpu_kernels() -> tuple[str, ...]:
+    """The CPU kernel objects of CPU_KERNELS that this machine runs: those its
+    build has (scalar and default everywhere, AVX2 and AVX-512 on x86-64) up
+    to the highest its CPU supports."""
+    found = []
+    for name in CPU_KERNELS:
+        with cpu_kernel(name) as used:
+            if used == name:
+                found.append(name)
+    return tuple(found)
+
+@contextlib.contextmanager
+def generic_kernel() -> Iterator[None]:
+    """``with generic_kernel(): ...`` runs ``torch.ops.torchrot.*`` on CPU
+    tensors with the device-generic kernels (pure PyTorch, what CUDA, XPU and
+    MPS tensors run) instead of the C++ ones, so that the same tests check
+    both paths on any machine. Process-wide while it lasts (it registers
+    CPU kernels that shadow the C++ ones; leaving restores them): not for
+    multi-threaded use.
+    """
+    from torchrot._device_kernels import GENERIC_KERNELS
+
+    library = torch.library.Library("torchrot", "IMPL")
+    try:
+        with warnings.catch_warnings():
+            # "Overriding a previously registered kernel": that is the point.
+            warnings.filterwarnings("ignore", message=".*(Overriding a previously registered kernel|operators may also be overridden)")
+            for name, kernel in GENERIC_KERNELS.items():
+                library.impl(name, kernel, "CPU")
+        yield
+    finally:
+        library._destroy()

@@ -1,0 +1,68 @@
+"""Accuracy of fitted rotations against the float64 SVD, and the acceptance
+criteria the tests apply."""
+from __future__ import annotations
+
+import torch
+
+from torchrot.reference import rotation_svd
+
+__all__ = ['dtype_id', 'bits', 'objective', 'rotation_errors', 'CRITERIA', 'conditioning']
+
+
+def dtype_id(dtype: torch.dtype) -> str:
+    """``"float32"`` for torch.float32: test ids and messages."""
+    return str(dtype).removeprefix("torch.")
+
+_INTEGER_VIEW = {torch.float32: torch.int32, torch.float64: torch.int64, torch.float16: torch.int16,
+                 torch.bfloat16: torch.int16}
+
+def bits(t: torch.Tensor) -> torch.Tensor:
+    """The bits of a float tensor as integers (contiguous), for bit-for-bit
+    comparisons in which NaN payloads and signed zeros count; other dtypes
+    are returned as they are."""
+    t = t.contiguous()
+    return t.view(_INTEGER_VIEW[t.dtype]) if t.dtype in _INTEGER_VIEW else t
+
+def objective(R: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+    """tr(R^T M) per matrix, in float64."""
+    return (R.double() * M.double()).sum((-2, -1))
+
+def rotation_errors(R: torch.Tensor, M: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per-matrix accuracy of rotations R fitted to M, against float64 SVD.
+
+    Returns float64 tensors of M's batch shape:
+      orthonormality: max |R^T R - I|;
+      det: |det R - 1|;
+      shortfall: (tr(R*^T M) - tr(R^T M)) / |M|_F  (0 for M = 0);
+      distance: |R - R*|_F (meaningful only where R* is unique).
+    """
+    Rd, Md = R.double(), M.double()
+    eye = torch.eye(3, dtype=torch.float64)
+    R_star = rotation_svd(Md)
+    norm = Md.norm(dim=(-2, -1))
+    safe = torch.where(norm > 0, norm, torch.ones_like(norm))
+    return {
+        "orthonormality": (Rd.mT @ Rd - eye).abs().amax((-2, -1)),
+        "det": (torch.linalg.det(Rd) - 1).abs(),
+        "shortfall": (objective(R_star, Md) - objective(Rd, Md)) / safe,
+        "distance": (Rd - R_star).norm(dim=(-2, -1)),
+    }
+
+#: Acceptance criteria per dtype (issue #2): max orthonormality / det error
+#: and max relative objective shortfall.
+CRITERIA = {
+    torch.float32: {"orthonormality": 1e-6, "det": 1e-6, "shortfall": 2e-6},
+    torch.float64: {"orthonormality": 1e-13, "det": 1e-13, "shortfall": 1e-12},
+}
+
+def conditioning(M: torch.Tensor) -> torch.Tensor:
+    """Per matrix, how much rounding can move the fitted rotation:
+    |M|_F / min(s_i + s_j) over the signed singular values s of M (the
+    eigenvalues of the optimality system, csrc/kernel/rotation_gradient.h;
+    Inf where the maximiser is not unique). A fit at working precision is
+    within about eps times this of the exact rotation, in float64."""
+    M = M.double()
+    s = torch.linalg.svdvals(M)
+    s[..., 2] = s[..., 2] * torch.linalg.det(M).sign()
+    pair_sums = torch.stack([s[..., 0] + s[..., 1], s[..., 0] + s[..., 2], s[..., 1] + s[..., 2]], -1)
+    return M.norm(dim=(-2, -1)) / pair_sums.amin(-1).clamp_min(0)
