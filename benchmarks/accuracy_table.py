@@ -12,17 +12,17 @@ from __future__ import annotations
 
 import argparse
 
-import torch
-
 import torchrot
+from torchrot.bench.options import positive_int
+from torchrot.bench.registry import VARIANTS
 from torchrot.testing import DISTRIBUTIONS, make_matrices, rotation_errors
 
-VARIANTS = ("newton", "conservative", "gershgorin")
+__all__ = ["main"]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=lambda s: int(float(s)), default=100_000)
+    parser.add_argument("--n", type=positive_int, default=100_000)
     n = parser.parse_args().n
     print(f"Accuracy against float64 SVD, {n} matrices per distribution, cold start, converged mode\n")
     print("| distribution | torchrot f32 max / median err | f32 SVD max / median err | torchrot f64 max err | "
@@ -39,15 +39,15 @@ def main() -> None:
               f"{svd['distance'].max():.1e} / {svd['distance'].median():.1e} | {e64['distance'].max():.1e} | "
               f"{e32['shortfall'].max():.1e} / {e64['shortfall'].max():.1e} |")
         row = [name]
-        for dtype, M in (("f32", M32), ("f64", M64)):
+        for M in (M32, M64):
             for variant in VARIANTS:
                 info = torchrot.fit_rotation_info(M, variant=variant)
                 row.append(f"{info.iterations.double().mean():.2f} / {(info.status == 1).double().mean():.3%}")
         counts.append(row)
-    print("\nMean Cayley steps / fallback rate per variant (newton, conservative, gershgorin)\n")
-    print("| distribution | f32 newton | f32 conservative | f32 gershgorin | f64 newton | f64 conservative | "
-          "f64 gershgorin |")
-    print("|---|---|---|---|---|---|---|")
+    print(f"\nMean Cayley steps / fallback rate per variant ({', '.join(VARIANTS)})\n")
+    columns = [f"{dtype} {variant}" for dtype in ("f32", "f64") for variant in VARIANTS]
+    print("| distribution | " + " | ".join(columns) + " |")
+    print("|---|" + "---|" * len(columns))
     for row in counts:
         print("| " + " | ".join(row) + " |")
 

@@ -17,6 +17,8 @@ import sys
 ENERGY_TOLERANCE = 1e-6  # converged energies must agree to this, relative
 MONOTONE_TOLERANCE = 1e-10  # energy increases below this (relative) are rounding of its evaluation
 
+__all__ = ["ENERGY_TOLERANCE", "MONOTONE_TOLERANCE", "main", "targets", "targets_markdown"]
+
 
 def targets(results: dict) -> list[dict]:
     """The targets, each {"target", "measured", "holds"}, from the results

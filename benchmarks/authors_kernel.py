@@ -27,8 +27,11 @@ import tempfile
 import torch
 
 import torchrot
-from torchrot.bench import micro
+from torchrot.bench.machine import Load, load_average, machine_info
+from torchrot.bench.timing import interleaved_median_seconds
 from torchrot.testing import make_warm_start, tiled_view
+
+__all__ = ["FLAGS", "SYMBOL", "TILE", "blocks", "build", "main"]
 
 TILE = 8  # the authors' AVX blocks: 8 float32 matrices
 SYMBOL = "_Z22fit_rotation_small_avxPfS_i"  # int fit_rotation_small_avx(float* M, float* R, int groups)
@@ -89,7 +92,7 @@ def main() -> None:
             kernel(M_shuffled.data_ptr(), R_shuffled.data_ptr(), groups)
             out.view(groups, TILE, 9).copy_(R_shuffled.transpose(1, 2))
 
-        fit, check = torchrot.fit_rotation, torch.ops.torchrot._count_bad_warm_starts
+        fit, check = torchrot.fit_rotation, torch.ops.torchrot_bench.count_bad_warm_starts
         calls = {
             "copy_ of M": lambda: buffer.copy_(M),
             "authors' one-step AVX, their layout, in place": lambda: kernel(M_blocks.data_ptr(), R_blocks.data_ptr(), groups),
@@ -99,9 +102,12 @@ def main() -> None:
             "authors' one-step incl. shuffling (N, 3, 3) in and out": authors_with_shuffles,
             "torchrot one-step, (N, 3, 3), in place": lambda: fit(M, out, max_iter=1, out=out),
         }
-        seconds = micro.interleaved_median_seconds(calls, args.rounds, args.min_time)
+        before = load_average()
+        seconds = interleaved_median_seconds(calls, args.rounds, args.min_time)
+        load = Load.around(before)
     copy, authors = seconds["copy_ of M"], seconds["authors' one-step AVX, their layout, in place"]
-    print(f"\nN = {n:,} float32 matrices, 1 thread, medians of {args.rounds} interleaved rounds (kernel {micro.machine_info()['torchrot_kernel']}):\n")
+    print(f"\nN = {n:,} float32 matrices, 1 thread, medians of {args.rounds} interleaved rounds (kernel "
+          f"{machine_info()['torchrot_kernel']}); {load.line()}:\n")
     print("| call | ns/matrix | x copy_ | x authors' |\n|---|---|---|---|")
     for name, s in seconds.items():
         print(f"| {name} | {s / n * 1e9:.2f} | {s / copy:.2f} | {s / authors:.2f} |")

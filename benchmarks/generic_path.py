@@ -1,6 +1,8 @@
 """Times the device-generic path (torchrot.fit_rotation_reference, torchrot.generic).
 
-Interleaved in one process, median of several runs, ns per matrix, N uniform
+Interleaved in one process, median of several rounds
+(``torchrot.bench.timing.interleaved_median_seconds``; ``torch.utils.benchmark``
+synchronizes the accelerator around each timing), ns per matrix, N uniform
 matrices (torchrot.testing.make_matrices("uniform", ...)), 1 thread on CPU:
 copy_ of M into a preallocated tensor (the memory floor), torch.linalg.svd
 special Procrustes (torchrot.rotation_svd), fit_rotation_reference eager and
@@ -8,20 +10,23 @@ under torch.compile(fullgraph=True) (converged, cold start; and the one-step
 warm start, max_iter=1), and, on CPU, the C++ kernel (torchrot.fit_rotation).
 The compiled converged graph takes about 2 minutes to compile here.
 
-    python benchmarks/generic_path.py [--n 100000] [--runs 7] [--dtype float32] [--no-compile]
+    python benchmarks/generic_path.py [--n 100000] [--runs 7] [--min-time 0.05] [--dtype float32] [--no-compile]
     python benchmarks/generic_path.py --device cuda --n 1000 10000 100000 1000000 10000000
 """
 from __future__ import annotations
 
 import argparse
-import os
-import statistics
 import time
 
 import torch
 
 import torchrot
+from torchrot.bench.machine import Load, load_average
+from torchrot.bench.options import DTYPES, dtype_name, positive_int
+from torchrot.bench.timing import interleaved_median_seconds
 from torchrot.testing import make_matrices
+
+__all__ = ["main", "run"]
 
 
 def _methods(M: torch.Tensor, init: torch.Tensor, compile_: bool) -> dict:
@@ -47,7 +52,8 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize()
 
 
-def run(n: int, device: torch.device, dtype: torch.dtype, distribution: str, runs: int, compile_: bool) -> None:
+def run(n: int, device: torch.device, dtype: torch.dtype, distribution: str, runs: int, compile_: bool,
+        min_time: float) -> None:
     M = make_matrices(distribution, n, 0, dtype).to(device)
     init = torchrot.fit_rotation(M.cpu()).to(device)
     methods = _methods(M, init, compile_)
@@ -56,38 +62,32 @@ def run(n: int, device: torch.device, dtype: torch.dtype, distribution: str, run
         f()
     _sync(device)
     warm_up_s = time.perf_counter() - t0
-    times: dict[str, list[float]] = {k: [] for k in methods}
-    for _ in range(runs):
-        for name, f in methods.items():
-            _sync(device)
-            t = time.perf_counter()
-            f()
-            _sync(device)
-            times[name].append(time.perf_counter() - t)
-    load = os.getloadavg()
+    before = load_average()
+    seconds = interleaved_median_seconds(methods, runs, min_time)
     threads = f"{torch.get_num_threads()} thread(s)" if device.type == "cpu" else str(device)
-    print(f"\nN={n:,} {distribution} {str(dtype).removeprefix('torch.')}, {threads}, median of {runs} interleaved "
-          f"runs; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}; warm-up incl. compile {warm_up_s:.1f} s")
-    svd = statistics.median(times["torch.linalg.svd (rotation_svd)"])
+    print(f"\nN={n:,} {distribution} {dtype_name(dtype)}, {threads}, median of {runs} interleaved rounds; "
+          f"{Load.around(before).line()}; warm-up incl. compile {warm_up_s:.1f} s")
+    svd = seconds["torch.linalg.svd (rotation_svd)"]
     print(f"{'method':36s} {'ns/matrix':>10s} {'x faster than SVD':>18s}")
-    for name, ts in times.items():
-        median = statistics.median(ts)
+    for name, median in seconds.items():
         print(f"{name:36s} {median / n * 1e9:10.1f} {svd / median:18.2f}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--n", type=int, nargs="+", default=[100_000])
-    parser.add_argument("--runs", type=int, default=7)
-    parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    parser.add_argument("--n", type=positive_int, nargs="+", default=[100_000])
+    parser.add_argument("--runs", type=positive_int, default=7, help="interleaved rounds")
+    parser.add_argument("--min-time", type=float, default=0.05, help="seconds of calls per sample")
+    parser.add_argument("--dtype", default="float32", choices=sorted(DTYPES))
     parser.add_argument("--distribution", default="uniform")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=1, help="CPU threads (default 1)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="CPU threads (default 1)")
     parser.add_argument("--compile", action=argparse.BooleanOptionalAction, default=True)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     for n in args.n:
-        run(n, torch.device(args.device), getattr(torch, args.dtype), args.distribution, args.runs, args.compile)
+        run(n, torch.device(args.device), DTYPES[args.dtype], args.distribution, args.runs, args.compile,
+            args.min_time)
 
 
 if __name__ == "__main__":

@@ -33,6 +33,8 @@ KERNEL_PREFIX = "kernel: "  # and the kernel each column ran on
 # (measured at 32 and 64: negative differences).
 MIN_SIZE = 256
 
+__all__ = ["MIN_SIZE", "main"]
+
 
 def _cases(n: int) -> dict:
     """name -> a thunk running that call on the first n matrices (outputs preallocated)."""
@@ -52,8 +54,8 @@ def _cases(n: int) -> dict:
         "copy_ of M": lambda: buf.copy_(M),
         "one-step, contiguous, out=": lambda: fit(M, init, max_iter=1, out=out),
         "one-step, SoA views, out=": lambda: fit(M_soa, init_soa, max_iter=1, out=out_soa),
-        "warm-start check (out= calls), contiguous": lambda: torch.ops.torchrot._count_bad_warm_starts(init),
-        "warm-start check (out= calls), SoA views": lambda: torch.ops.torchrot._count_bad_warm_starts(init_soa),
+        "warm-start check (out= calls), contiguous": lambda: torch.ops.torchrot_bench.count_bad_warm_starts(init),
+        "warm-start check (out= calls), SoA views": lambda: torch.ops.torchrot_bench.count_bad_warm_starts(init_soa),
         "converged from the warm start": lambda: fit(M, init, out=out),
         "cold uniform, max_iter=1": lambda: fit(U, max_iter=1, out=out),
         "cold uniform, max_iter=2": lambda: fit(U, max_iter=2, out=out),
@@ -66,7 +68,7 @@ def _worker(kernels: list[str], sizes: list[int]) -> None:
     """Runs every case on every size between SIGUSR1 and SIGUSR2 (the counter's
     region markers), after a warm-up call. It names the cases and the kernels
     that ran (a kernel the CPU lacks is capped by cpu_kernel) on stderr."""
-    from torchrot.testing import cpu_kernel
+    from torchrot.testing.kernels import cpu_kernel
 
     torch.set_num_threads(1)  # the kernel runs on the traced thread
     cases = {n: _cases(n) for n in sizes}

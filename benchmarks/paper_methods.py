@@ -5,27 +5,30 @@ memory copy and torchrot, timed in one run on the same data: the README table.
     python benchmarks/paper_methods.py --n 1e6 --data warm rot60 uniform --json out.json
     python benchmarks/paper_methods.py --wide           # the README table
 
-Rows come from ``torchrot.bench.micro.run_case`` (medians of ``--repeats``
-``blocked_autorange`` medians; accuracy against float64 SVD on every matrix).
-Methods with ``sample_n`` (Mueller's converged mode) run on the first matrices
-only; their N column says how many.
+Rows come from ``torchrot.bench.cases.run_checked_case`` (medians of ``--repeats``
+``blocked_autorange`` medians; accuracy against float64 SVD on every matrix;
+rows still suspicious after their re-timings marked as in the main job's
+tables). Methods with ``sample_n`` (Mueller's converged mode) run on the
+first matrices only; their N column says how many.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from dataclasses import asdict
 
-import torch
-
+from torchrot.bench.cases import run_checked_case
 from torchrot.bench.data import RECORDED, pairs
-from torchrot.bench.micro import PAPER, WARM_DATA, all_methods, machine_info, run_case
-from torchrot.testing import DISTRIBUTIONS
+from torchrot.bench.machine import Load, load_average, machine_info
+from torchrot.bench.options import DTYPES, data_sets, positive_int
+from torchrot.bench.registry import PAPER, WARM_DATA, all_methods
+from torchrot.bench.tables import fmt
+from torchrot.bench.trust import MARKER, legend
+
+__all__ = ["TORCHROT_MODES", "main", "selected_methods", "table", "wide_table"]
 
 TORCHROT_MODES = ("one_step", "converged_cold", "converged_warm")  # conservative variant
-DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 def selected_methods():
@@ -34,8 +37,8 @@ def selected_methods():
             if m.group == PAPER or m.key in ("copy", "svd") or m.mode in TORCHROT_MODES]
 
 
-def _fmt(x, spec: str) -> str:
-    return "-" if x is None else format(x, spec)
+def _marked(row) -> str:
+    return f" {MARKER} {', '.join(row.suspicion)}" if row.suspicion else ""
 
 
 def table(rows) -> str:
@@ -43,9 +46,10 @@ def table(rows) -> str:
              "| mean steps |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(
-            f"| {r.data} | {r.method} | {r.n:.0e} | {r.ns_per_matrix:.0f} | {_fmt(r.speedup_vs_svd, '.2f')} | "
-            f"{_fmt(r.time_vs_copy, '.0f')} | {_fmt(r.max_error, '.1e')} | {_fmt(r.median_error, '.1e')} | "
-            f"{_fmt(r.share_above_1e3, '.2%')} | {_fmt(r.failures, 'd')} | {_fmt(r.mean_iterations, '.1f')} |")
+            f"| {r.data} | {r.method} | {r.n:.0e} | {r.ns_per_matrix:.0f}{_marked(r)} | "
+            f"{fmt(r.speedup_vs_svd, '.2f')} | {fmt(r.time_vs_copy, '.0f')} | {fmt(r.max_error, '.1e')} | "
+            f"{fmt(r.median_error, '.1e')} | {fmt(r.share_above_1e3, '.2%')} | {fmt(r.failures, 'd')} | "
+            f"{fmt(r.mean_iterations, '.1f')} |")
     return "\n".join(lines)
 
 
@@ -66,40 +70,44 @@ def wide_table(rows) -> str:
         for d in data_sets:
             r = by_data.get(d)
             cells += (["-"] * 3 if r is None else
-                      [f"{r.ns_per_matrix:.0f}{n_used(r)}", _fmt(r.max_error, ".0e"), failed(r)])
+                      [f"{r.ns_per_matrix:.0f}{n_used(r)}{_marked(r)}", fmt(r.max_error, ".0e"), failed(r)])
         lines.append(f"| {method} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=lambda t: int(float(t)), default=100_000, help="matrices per data set")
-    parser.add_argument("--data", nargs="+", default=["warm", "rot60", "uniform"],
-                        choices=sorted(DISTRIBUTIONS) + list(RECORDED),
+    parser.add_argument("--n", type=positive_int, default=100_000, help="matrices per data set")
+    parser.add_argument("--data", nargs="+", default=["warm", "rot60", "uniform"], choices=data_sets(),
                         help="generated distributions or the recorded ARAP/elasticity data (recorded on first "
                              "use into $TORCHROT_CACHE, see torchrot.bench.data)")
     parser.add_argument("--dtype", default="float32", choices=sorted(DTYPES))
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=positive_int, default=1)
+    parser.add_argument("--repeats", type=positive_int, default=5)
     parser.add_argument("--min-run-time", type=float, default=0.1)
     parser.add_argument("--json", help="also write the rows and the machine to this JSON file")
     parser.add_argument("--wide", action="store_true", help="also print one line per method (the README table)")
     args = parser.parse_args(argv)
-    print(f"machine: {machine_info()}; load average {os.getloadavg()} (shared machine: medians of runs)")
+    print(f"machine: {machine_info()} (shared machine: medians of runs)")
+    before = load_average()
     rows = []
     for data in args.data:
         M, init = pairs(data, args.n, DTYPES[args.dtype])
-        rows += run_case("methods", data, M, init, args.threads, selected_methods(), args.repeats,
-                         args.min_run_time, log=lambda line: print(line, file=sys.stderr),
-                         warm=data in WARM_DATA or data in RECORDED)
-    print(f"load average at the end: {os.getloadavg()}")
+        rows += run_checked_case("methods", data, M, init, args.threads, selected_methods(), args.repeats,
+                                 args.min_run_time, log=lambda line: print(line, file=sys.stderr),
+                                 warm=data in WARM_DATA or data in RECORDED)
+    load = Load.around(before)
+    print(load.line())
     print(table(rows))
     if args.wide:
         print()
         print(wide_table(rows))
+    if any(r.suspicion for r in rows):
+        print("\n" + legend())
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"machine": machine_info(), "load_average_at_end": os.getloadavg(), "args": vars(args),
+            json.dump({"machine": machine_info(), "load_average_before": list(load.before),
+                       "load_average_at_end": list(load.after), "args": vars(args),
                        "rows": [asdict(r) for r in rows]}, f, indent=1)
     return 0
 

@@ -12,7 +12,7 @@ counted), ``torch.add(M, init, out=)``, which moves a warm-start call's
 bytes, and the check of the warm starts that ``out=`` calls make before
 writing. Part 2: the cold fit on uniform [0, 1] matrices (N = 1e5; converged,
 and one and two steps) against ``torch.linalg.svd`` special Procrustes. Part 3: ``torchrot.nn.RotationFit``
-forward + backward against SVD autograd (``torchrot.bench.micro.rotation_layer``).
+forward + backward against SVD autograd (``torchrot.bench.workloads.rotation_layer``).
 Between parts 2 and 3, what bounds the targets, from those timings (bytes
 moved, the cost and number of Cayley steps) and from the computation alone
 with the data in cache, timed there.
@@ -22,18 +22,24 @@ with the data in cache, timed there.
 from __future__ import annotations
 
 import argparse
-import os
 
 import torch
 
 import torchrot
-from torchrot.bench import apps, data, micro
+from torchrot.bench import apps, data
+from torchrot.bench.accuracy import FAILURE_THRESHOLD, accuracy
+from torchrot.bench.machine import Load, load_average, machine_info
+from torchrot.bench.tables import format_layer_table
+from torchrot.bench.timing import interleaved_median_seconds
+from torchrot.bench.workloads import rotation_layer
 from torchrot.testing import make_matrices, soa_view
+
+__all__ = ["main"]
 
 
 def _failures(R: torch.Tensor, M64: torch.Tensor, R_svd: torch.Tensor) -> int:
-    """Failures of R against the float64 SVD solution R_svd of M64 (micro.accuracy)."""
-    return micro.accuracy(R, M64, R_svd)["failures"]
+    """Failures of R against the float64 SVD solution R_svd of M64 (torchrot.bench.accuracy)."""
+    return accuracy(R, M64, R_svd)["failures"]
 
 
 # The timings parts 1 and 2 share with _bounds and the target table.
@@ -70,7 +76,7 @@ def _bounds(ns: dict[str, float], cold_ns: dict[str, float], M: torch.Tensor, in
         "one-step": lambda: fit(Mc, Ic, max_iter=1, out=out_c),
         "converged warm": lambda: fit(Mc, Ic, out=out_c),
     }
-    ns_c = {k: v / CACHED_N * 1e9 for k, v in micro.interleaved_median_seconds(cached, rounds, min_time).items()}
+    ns_c = {k: v / CACHED_N * 1e9 for k, v in interleaved_median_seconds(cached, rounds, min_time).items()}
     copy, add, elem = ns[COPY], ns[ADD], M.element_size() * 9
     print(f"\nWhat bounds them (this run, ns/matrix):\n- bytes: a warm-start call reads M and init and writes R, "
           f"{3 * elem} B/matrix against copy_'s {2 * elem} B; torch.add(M, init, out=) moves the same bytes in "
@@ -106,7 +112,8 @@ def main() -> None:
     parser.add_argument("--layer-batches", type=int, nargs="+", default=[64, 100_000])
     args = parser.parse_args()
     torch.set_num_threads(1)
-    print(f"machine: {micro.machine_info()}; load average {os.getloadavg()}")
+    print(f"machine: {machine_info()}")
+    before = load_average()
 
     M, init = data.pairs("arap", args.n, torch.float32, configs={"arap": apps.FULL.arap})
     n = M.shape[0]
@@ -115,7 +122,7 @@ def main() -> None:
     methods = {
         COPY: lambda: buf.copy_(M),
         ADD: lambda: torch.add(M, init, out=buf),
-        VALIDATE: lambda: torch.ops.torchrot._count_bad_warm_starts(init),
+        VALIDATE: lambda: torch.ops.torchrot_bench.count_bad_warm_starts(init),
         "one-step, SoA views, out=": lambda: torchrot.fit_rotation(M_soa, init_soa, max_iter=1, out=out_soa),
         ONE_STEP: lambda: torchrot.fit_rotation(M, init, max_iter=1, out=out),
         "one-step, contiguous, in place (out=init)": lambda: torchrot.fit_rotation(M, R, max_iter=1, out=R),
@@ -123,9 +130,10 @@ def main() -> None:
         CONVERGED: lambda: torchrot.fit_rotation(M, init, out=out),
         "converged from the warm start, SoA views": lambda: torchrot.fit_rotation(M_soa, init_soa, out=out_soa),
     }
-    ns = {k: v / n * 1e9 for k, v in micro.interleaved_median_seconds(methods, args.rounds, args.min_time).items()}
+    ns = {k: v / n * 1e9 for k, v in interleaved_median_seconds(methods, args.rounds, args.min_time).items()}
     copy = ns[COPY]
-    print(f"\nrecorded ARAP data (57k-vertex capsule), N = {n:,}, float32, 1 thread, median of {args.rounds} rounds")
+    print(f"\nrecorded ARAP data (57k-vertex capsule), N = {n:,}, float32, 1 thread, median of {args.rounds} rounds; "
+          f"{Load.around(before).line()}")
     print(f"{'method':44s} {'ns/matrix':>10s} {'x copy_':>8s}")
     for name, v in ns.items():
         print(f"{name:44s} {v:10.2f} {v / copy:8.2f}")
@@ -134,22 +142,22 @@ def main() -> None:
     R_converged, warm_steps, _ = torchrot.fit_rotation_info(M, init)
     converged_failures = _failures(R_converged, M64, R_svd)
     one_step_failures = _failures(torchrot.fit_rotation(M, init, max_iter=1), M64, R_svd)
-    print(f"failures (|R - R*|_F > {micro.FAILURE_THRESHOLD:g} or non-finite): one-step {one_step_failures:,} "
+    print(f"failures (|R - R*|_F > {FAILURE_THRESHOLD:g} or non-finite): one-step {one_step_failures:,} "
           f"({one_step_failures / n:.2%}), converged {converged_failures}")
 
     U = make_matrices("uniform", 100_000, 0, torch.float32)
     cold_calls = {SVD: lambda: torchrot.rotation_svd(U), COLD: lambda: torchrot.fit_rotation(U),
                   COLD_1: lambda: torchrot.fit_rotation(U, max_iter=1),
                   COLD_2: lambda: torchrot.fit_rotation(U, max_iter=2)}
-    cold = micro.interleaved_median_seconds(cold_calls, args.rounds, args.min_time)
+    cold = interleaved_median_seconds(cold_calls, args.rounds, args.min_time)
     cold_ns = {k: v / U.shape[0] * 1e9 for k, v in cold.items()}
     print(f"\nuniform [0, 1], N = 100,000, converged cold: torchrot {cold_ns[COLD]:.1f} ns/matrix, "
           f"torch.linalg.svd {cold_ns[SVD]:.1f}: {cold[SVD] / cold[COLD]:.1f}x")
 
     _bounds(ns, cold_ns, M, init, warm_steps, U, args.rounds, args.min_time)
 
-    layer = micro.rotation_layer(tuple(args.layer_batches), min_run_time=args.min_time)
-    print("\nnn.RotationFit forward + backward (us), float32, 1 thread:\n" + micro.format_layer_table(layer))
+    layer = rotation_layer(tuple(args.layer_batches), min_run_time=args.min_time)
+    print("\nnn.RotationFit forward + backward (us), float32, 1 thread:\n" + format_layer_table(layer))
 
     rows = [
         ("one-step on SoA views <= 1.0x copy_", ns["one-step, SoA views, out="] / copy, 1.0),

@@ -22,313 +22,41 @@ alike), and the rotation layer's forward+backward alone in ns/matrix at batch
 Run: ``python benchmarks/train_rotation_regression.py`` (2000 steps, 3 seeds:
 a few minutes); e.g. ``--steps 20000 --seeds 10`` for a longer run. Writes
 ``train_rotation_regression.{json,md,png}`` into ``benchmarks/results/``.
+The model, data and training: ``rotation_regression_model.py``; the layers
+alone: ``rotation_regression_layers.py``; this file runs them and writes
+the results.
 """
 from __future__ import annotations
 
 import argparse
-import copy
 import json
-import math
 import os
-import statistics
-import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 import torch
-from torch import nn
+from rotation_regression_layers import (
+    format_accuracy_table,
+    format_layer_table,
+    gradient_accuracy,
+    time_rotation_layers,
+)
+from rotation_regression_model import (
+    COLORS,
+    LABELS,
+    METHODS,
+    SHORT_LABELS,
+    Config,
+    network_outputs,
+    summarize,
+    train_pair,
+)
 
 import torchrot
-from torchrot import baselines
-from torchrot.bench.micro import machine_info, median_seconds
-from torchrot.testing import make_matrices, random_rotations
+from torchrot.bench.machine import machine_info
+from torchrot.bench.options import positive_int
+from torchrot.testing import make_matrices
 
-METHODS = ("torchrot", "svd")
-LABELS = {
-    "torchrot": "torchrot.nn.RotationFit",
-    "svd": "SVD special orthogonalisation (torch.linalg.svd autograd)",
-}
-SHORT_LABELS = {"torchrot": "torchrot RotationFit", "svd": "SVD (torch.linalg.svd autograd)"}
-COLORS = {"torchrot": "tab:blue", "svd": "tab:orange"}
-
-
-@dataclass
-class Config:
-    steps: int = 2000
-    batch: int = 64
-    points: int = 64
-    lr: float = 1e-3
-    noise: float = 0.0
-    test_size: int = 1000
-    eval_every: int = 100
-    seeds: int = 3
-    threads: int = 1
-    layer_batch: int = 100_000
-    layer_repeats: int = 5
-    min_run_time: float = 0.2
-
-
-# ---------------------------------------------------------------------------
-# Model and data
-# ---------------------------------------------------------------------------
-
-
-class SVDOrthogonalization(nn.Module):
-    """(..., 9) row-major -> (..., 3, 3): U diag(1, 1, det UV^T) V^T by torch.linalg.svd."""
-
-    def forward(self, M: torch.Tensor) -> torch.Tensor:
-        return torchrot.rotation_svd(M.unflatten(-1, (3, 3)))
-
-
-def rotation_layer(method: str) -> nn.Module:
-    return torchrot.nn.RotationFit() if method == "torchrot" else SVDOrthogonalization()
-
-
-class PointNetRegressor(nn.Module):
-    """Points (B, N, 3) -> rotations (B, 3, 3): shared per-point MLP, max-pool
-    over points, MLP head to 9 numbers, then the rotation layer."""
-
-    def __init__(self, layer: nn.Module, width: int = 128) -> None:
-        super().__init__()
-        self.point_mlp = nn.Sequential(nn.Linear(3, 64), nn.ReLU(), nn.Linear(64, width), nn.ReLU())
-        self.head = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Linear(width, 9))
-        self.rotation = layer
-
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
-        features = self.point_mlp(points).amax(-2)
-        return self.rotation(self.head(features))
-
-
-def make_point_cloud(n: int, seed: int) -> torch.Tensor:
-    """(n, 3) float32 fixed cloud without symmetries: a tripod of three
-    orthogonal arms of lengths 1.5, 1.0 and 0.6 (points spread uniformly along
-    each, plus a little noise), centred. (A Gaussian blob would be nearly
-    symmetric under half-turns about its axes, which traps training at large
-    errors on some seeds.)"""
-    gen = torch.Generator().manual_seed(seed)
-    lengths = torch.tensor([1.5, 1.0, 0.6], dtype=torch.float64)
-    arm = torch.arange(n) % 3
-    cloud = torch.zeros(n, 3, dtype=torch.float64)
-    cloud[torch.arange(n), arm] = torch.rand(n, generator=gen, dtype=torch.float64) * lengths[arm]
-    cloud += 0.03 * torch.randn(n, 3, generator=gen, dtype=torch.float64)
-    return (cloud - cloud.mean(0)).float()
-
-
-def sample_batch(cloud: torch.Tensor, batch: int, gen: torch.Generator, noise: float):
-    """Rotated copies of ``cloud`` (B, N, 3) and their rotations R* (B, 3, 3):
-    points_i = R* cloud_i (+ Gaussian noise)."""
-    R = random_rotations(batch, gen).float()
-    points = cloud @ R.mT
-    if noise > 0:
-        points = points + noise * torch.randn(points.shape, generator=gen)
-    return points, R
-
-
-def chordal_loss(R: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    return (R - target).square().sum((-2, -1)).mean()
-
-
-def geodesic_degrees(R: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Angle of R^T R* per matrix, in degrees."""
-    cos = ((R.double() * target.double()).sum((-2, -1)) - 1) / 2
-    return torch.rad2deg(torch.arccos(cos.clamp(-1, 1)))
-
-
-# ---------------------------------------------------------------------------
-# Training
-# ---------------------------------------------------------------------------
-
-
-def _train_step(model, optimizer, points, target) -> tuple[float, float, bool]:
-    """One step; returns (loss, seconds, all gradients finite)."""
-    start = time.perf_counter()
-    optimizer.zero_grad(set_to_none=True)
-    loss = chordal_loss(model(points), target)
-    loss.backward()
-    finite = all(bool(torch.isfinite(p.grad).all()) for p in model.parameters())
-    optimizer.step()
-    return loss.item(), time.perf_counter() - start, finite
-
-
-@torch.no_grad()
-def _evaluate(model, test_points, test_R) -> torch.Tensor:
-    return geodesic_degrees(model(test_points), test_R)
-
-
-def train_pair(config: Config, seed: int, log=print) -> tuple[dict, dict[str, nn.Module], torch.Tensor]:
-    """Trains one model per method from the same initial weights on the same
-    batches, stepping them alternately (order swapped every step). Returns the
-    run's figures and histories, the trained models and the test inputs."""
-    torch.manual_seed(seed)
-    base = PointNetRegressor(nn.Identity())
-    models = {}
-    for method in METHODS:
-        model = copy.deepcopy(base)
-        model.rotation = rotation_layer(method)
-        models[method] = model
-    optimizers = {m: torch.optim.Adam(models[m].parameters(), lr=config.lr) for m in METHODS}
-    schedulers = {m: torch.optim.lr_scheduler.CosineAnnealingLR(optimizers[m], config.steps) for m in METHODS}
-    cloud = make_point_cloud(config.points, seed)
-    train_gen = torch.Generator().manual_seed(seed + 1)
-    test_points, test_R = sample_batch(cloud, config.test_size, torch.Generator().manual_seed(seed + 2), config.noise)
-    history = {m: {"loss": [], "seconds": [], "eval_step": [], "eval_mean_deg": [], "nonfinite_steps": 0}
-               for m in METHODS}
-    for step in range(1, config.steps + 1):
-        points, target = sample_batch(cloud, config.batch, train_gen, config.noise)
-        order = METHODS if step % 2 else METHODS[::-1]
-        for method in order:
-            loss, seconds, finite = _train_step(models[method], optimizers[method], points, target)
-            schedulers[method].step()
-            h = history[method]
-            h["loss"].append(loss)
-            h["seconds"].append(seconds)
-            h["nonfinite_steps"] += not finite
-        if step % config.eval_every == 0 or step == config.steps:
-            line = [f"seed {seed} step {step:6d}"]
-            for method in METHODS:
-                errors = _evaluate(models[method], test_points, test_R)
-                history[method]["eval_step"].append(step)
-                history[method]["eval_mean_deg"].append(errors.mean().item())
-                line.append(f"{method}: loss {statistics.fmean(history[method]['loss'][-config.eval_every:]):.4f} "
-                            f"test {errors.mean().item():6.2f} deg")
-            log("  ".join(line))
-    final = {}
-    for method in METHODS:
-        errors = _evaluate(models[method], test_points, test_R)
-        h = history[method]
-        final[method] = {
-            "test_mean_deg": errors.mean().item(),
-            "test_median_deg": errors.median().item(),
-            "final_train_loss": statistics.fmean(h["loss"][-min(100, len(h["loss"])):]),
-            "step_ms_median": statistics.median(h["seconds"]) * 1e3,
-            "step_ms_mean": statistics.fmean(h["seconds"]) * 1e3,
-            "train_seconds": sum(h["seconds"]),
-            "nonfinite_steps": h["nonfinite_steps"],
-        }
-    return {"seed": seed, "final": final, "history": history}, models, test_points
-
-
-# ---------------------------------------------------------------------------
-# Rotation layer alone
-# ---------------------------------------------------------------------------
-
-
-def _layer_calls(M: torch.Tensor):
-    """name -> (forward, forward+backward) callables on the float32 ``(B, 3, 3)``
-    matrices M, plus the copy floor (forward only)."""
-    M = M.detach().clone().requires_grad_()
-    G = torch.randn(M.shape, generator=torch.Generator().manual_seed(1))
-    out = torch.empty_like(M)
-    layers = {"torchrot.nn.RotationFit": torchrot.nn.RotationFit(),
-              "SVD (torch.linalg.svd autograd)": torchrot.rotation_svd}
-    if baselines.available("roma"):
-        layers["roma.special_procrustes"] = baselines.roma_special_procrustes
-
-    def forward(layer):
-        def run():
-            with torch.no_grad():
-                return layer(M)
-        return run
-
-    def forward_backward(layer):
-        return lambda: torch.autograd.grad(layer(M), M, G)
-
-    calls = {name: (forward(layer), forward_backward(layer)) for name, layer in layers.items()}
-    calls["copy_ (memory floor)"] = (lambda: out.copy_(M.detach()), None)
-    return calls
-
-
-def _median_seconds(fn, repeats: int, min_run_time: float) -> float:
-    return statistics.median(median_seconds(fn, repeats, min_run_time))
-
-
-def _tiled(M: torch.Tensor, n: int) -> torch.Tensor:
-    """The first n matrices of M repeated: ``(n, 3, 3)``."""
-    return M.repeat(math.ceil(n / M.shape[0]), 1, 1)[:n].contiguous()
-
-
-def time_rotation_layers(config: Config, data: dict[str, torch.Tensor], log=print) -> list[dict]:
-    """For each data set (name -> float32 ``(K, 3, 3)`` matrices, tiled to the
-    batch): ns/matrix of forward and forward+backward at ``config.layer_batch``
-    (1 thread) and microseconds per forward+backward call at the training batch."""
-    rows = []
-    for data_name, M in data.items():
-        big, small = _layer_calls(_tiled(M, config.layer_batch)), _layer_calls(_tiled(M, config.batch))
-        data_rows = []
-        for name, (fwd, fwd_bwd) in big.items():
-            row = {"data": data_name, "method": name, "batch": config.layer_batch,
-                   "forward_ns": _median_seconds(fwd, config.layer_repeats, config.min_run_time)
-                   / config.layer_batch * 1e9}
-            if fwd_bwd is not None:
-                row["forward_backward_ns"] = (_median_seconds(fwd_bwd, config.layer_repeats, config.min_run_time)
-                                              / config.layer_batch * 1e9)
-                row["forward_backward_us_at_train_batch"] = _median_seconds(
-                    small[name][1], config.layer_repeats, config.min_run_time) * 1e6
-            data_rows.append(row)
-            log(f"  {data_name:24s} {name:34s} forward {row['forward_ns']:9.1f} ns/matrix"
-                + (f"  forward+backward {row['forward_backward_ns']:9.1f} ns/matrix" if fwd_bwd else ""))
-        svd = next(r for r in data_rows if r["method"].startswith("SVD"))
-        copy_row = next(r for r in data_rows if r["method"].startswith("copy_"))
-        for row in data_rows:
-            if "forward_backward_ns" in row:
-                row["forward_backward_speedup_vs_svd"] = svd["forward_backward_ns"] / row["forward_backward_ns"]
-            row["forward_speedup_vs_svd"] = svd["forward_ns"] / row["forward_ns"]
-            row["forward_vs_copy"] = row["forward_ns"] / copy_row["forward_ns"]
-        rows += data_rows
-    return rows
-
-
-def gradient_accuracy(data: dict[str, torch.Tensor], max_matrices: int = 10_000) -> list[dict]:
-    """float32 dL/dM of each layer against float64 SVD autograd (L = sum G * R,
-    G Gaussian), per data set: per-matrix relative Frobenius error
-    ||g - g64|| / ||g64|| (matrices where the float64 gradient is finite), and
-    how close M's singular values are (min_i<j |sigma_i - sigma_j| / sigma_1):
-    SVD's backward divides by sigma_i^2 - sigma_j^2."""
-    rows = []
-    layers = {"torchrot.nn.RotationFit": torchrot.nn.RotationFit(),
-              "SVD (torch.linalg.svd autograd)": torchrot.rotation_svd}
-    for data_name, M in data.items():
-        M = M[:max_matrices].detach()
-        G = torch.randn(M.shape, generator=torch.Generator().manual_seed(2))
-        reference = _gradient(torchrot.rotation_svd, M.double(), G.double())
-        usable = torch.isfinite(reference).all(-1).all(-1)
-        sigma = torch.linalg.svdvals(M.double())
-        gaps = torch.stack([sigma[:, 0] - sigma[:, 1], sigma[:, 1] - sigma[:, 2]], -1).amin(-1) / sigma[:, 0]
-        for name, layer in layers.items():
-            g = _gradient(layer, M, G).double()
-            error = ((g - reference).norm(dim=(-2, -1)) / reference.norm(dim=(-2, -1)))[usable]
-            rows.append({"data": data_name, "layer": name, "matrices": int(usable.sum()),
-                         "median_relative_error": error.median().item(),
-                         "p99_relative_error": error.quantile(0.99).item(),
-                         "max_relative_error": error.max().item(),
-                         "nonfinite_share": 1 - torch.isfinite(g).all(-1).all(-1).double().mean().item(),
-                         "median_relative_sigma_gap": gaps.median().item()})
-    return rows
-
-
-def _gradient(layer, M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
-    M = M.clone().requires_grad_()
-    return torch.autograd.grad((layer(M) * G).sum(), M)[0]
-
-
-def network_outputs(model: PointNetRegressor, points: torch.Tensor) -> torch.Tensor:
-    """The raw 9-D outputs M (before the rotation layer) as ``(B, 3, 3)``."""
-    with torch.no_grad():
-        return model.head(model.point_mlp(points).amax(-2)).unflatten(-1, (3, 3))
-
-
-# ---------------------------------------------------------------------------
-# Output
-# ---------------------------------------------------------------------------
-
-
-def summarize(runs: list[dict]) -> dict:
-    """Per method: mean over seeds of each final figure (and the spread)."""
-    summary = {}
-    for method in METHODS:
-        finals = [run["final"][method] for run in runs]
-        summary[method] = {key: statistics.fmean(f[key] for f in finals) for key in finals[0]}
-        summary[method]["test_mean_deg_per_seed"] = [f["test_mean_deg"] for f in finals]
-    return summary
+__all__ = ["main", "parse_args"]
 
 
 def format_tables(config: Config, summary: dict, layer_rows: list[dict]) -> str:
@@ -348,47 +76,6 @@ def format_tables(config: Config, summary: dict, layer_rows: list[dict]) -> str:
                      f"{s['final_train_loss']:.5f} | {s['step_ms_median']:.2f} | {s['train_seconds']:.1f} | "
                      f"{s['nonfinite_steps']:.0f} |")
     return "\n".join(lines) + "\n\n" + format_layer_table(config, layer_rows)
-
-
-def format_layer_table(config: Config, layer_rows: list[dict]) -> str:
-    lines = [
-        f"Rotation layer alone: float32, batch {config.layer_batch:.0e}, 1 thread, median of "
-        f"{config.layer_repeats} runs, every row of a data set in the same run; last column: one call at the "
-        f"training batch ({config.batch}). Data: 'gaussian' = torchrot.testing's Gaussian matrices (like an "
-        "untrained network's outputs); 'trained network outputs' = the raw 9-D outputs of the trained torchrot "
-        "model on the test set (tiled).",
-        "",
-        "| data | layer | forward+backward ns/matrix | speed-up vs SVD | forward ns/matrix | forward vs copy "
-        f"| forward+backward us per call (batch {config.batch}) |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for r in layer_rows:
-        fb = r.get("forward_backward_ns")
-        if fb is None:
-            backward_cells = ("-", "-")
-            call = "-"
-        else:
-            backward_cells = (f"{fb:.1f}", f"{r['forward_backward_speedup_vs_svd']:.1f}x")
-            call = f"{r['forward_backward_us_at_train_batch']:.1f}"
-        lines.append(f"| {r['data']} | {r['method']} | {backward_cells[0]} | {backward_cells[1]} | "
-                     f"{r['forward_ns']:.1f} | {r['forward_vs_copy']:.1f} | {call} |")
-    return "\n".join(lines)
-
-
-def format_accuracy_table(rows: list[dict]) -> str:
-    lines = [
-        "Gradient accuracy in float32: dL/dM (L = sum G * R, G Gaussian) against autograd through float64 SVD, "
-        "per matrix ||g - g64||_F / ||g64||_F; sigma gap = median of min |sigma_i - sigma_j| / sigma_1 "
-        "(SVD's backward divides by sigma_i^2 - sigma_j^2).",
-        "",
-        "| data | layer | matrices | median rel. error | 99th percentile | max | non-finite | sigma gap |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(f"| {r['data']} | {r['layer']} | {r['matrices']} | {r['median_relative_error']:.1e} | "
-                     f"{r['p99_relative_error']:.1e} | {r['max_relative_error']:.1e} | {r['nonfinite_share']:.2%} | "
-                     f"{r['median_relative_sigma_gap']:.3f} |")
-    return "\n".join(lines)
 
 
 def _smooth(values: list[float], window: int) -> list[float]:
@@ -486,25 +173,13 @@ def write_results(config: Config, runs: list[dict], summary: dict, layer_rows: l
     return paths
 
 
-# ---------------------------------------------------------------------------
-# Command line
-# ---------------------------------------------------------------------------
-
-
-def _positive_int(text: str) -> int:
-    value = int(float(text))  # accepts 1e5
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
-    return value
-
-
 def parse_args(argv=None) -> tuple[Config, str]:
     defaults = Config()
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    for name, kind in (("steps", _positive_int), ("batch", _positive_int), ("points", _positive_int),
-                       ("lr", float), ("noise", float), ("test-size", _positive_int),
-                       ("eval-every", _positive_int), ("seeds", _positive_int), ("threads", _positive_int),
-                       ("layer-batch", _positive_int), ("layer-repeats", _positive_int), ("min-run-time", float)):
+    for name, kind in (("steps", positive_int), ("batch", positive_int), ("points", positive_int),
+                       ("lr", float), ("noise", float), ("test-size", positive_int),
+                       ("eval-every", positive_int), ("seeds", positive_int), ("threads", positive_int),
+                       ("layer-batch", positive_int), ("layer-repeats", positive_int), ("min-run-time", float)):
         attr = name.replace("-", "_")
         parser.add_argument(f"--{name}", type=kind, default=getattr(defaults, attr),
                             help=f"(default {getattr(defaults, attr)})")

@@ -18,8 +18,10 @@ from torchrot.apps.arap import ArapSolver  # noqa: E402
 from torchrot.apps.elasticity import ElasticitySolver  # noqa: E402
 from torchrot.apps.local_step import LocalStep, keep_better  # noqa: E402
 from torchrot.apps.meshes import capsule, load_surface, octopus  # noqa: E402
-from torchrot.bench import data as datasets, experiments, micro, report  # noqa: E402
+from torchrot.bench import cases, experiments, registry, report, tables, workloads  # noqa: E402
+from torchrot.bench import data as datasets  # noqa: E402
 from torchrot.bench.recording import Recorder, load_recording  # noqa: E402
+from torchrot.bench.rows import Row  # noqa: E402
 from torchrot.bench.sessions import HandleScript, run_arap_session  # noqa: E402
 from torchrot.bench.statistics import one_step_errors, recording_statistics, rotation_angle  # noqa: E402
 from torchrot.bench.timing import PhaseTimer  # noqa: E402
@@ -253,11 +255,11 @@ def test_warm_start_pairs_draw_and_repeat(tmp_path):
 
 def test_benchmark_times_methods_on_recorded_data(tmp_path):
     cache = str(tmp_path / "cache")
-    methods = [m for m in micro.all_methods(None, ("conservative",), first_touch=False, comparison=True)
+    methods = [m for m in registry.all_methods(None, ("conservative",), first_touch=False, comparison=True)
                if m.sample_n is None]
     M, init = datasets.pairs("arap", 400, torch.float32, configs={"arap": TINY_ARAP}, cache=cache, progress=False)
     assert len(datasets.load_dataset("arap", TINY_ARAP, cache)) == 400  # the given configuration, in that cache
-    rows = micro.run_case("apps", "arap", M, init, 1, methods, 1, 0.001, log=lambda s: None, warm=True)
+    rows = cases.run_case("apps", "arap", M, init, 1, methods, 1, 0.001, log=lambda s: None, warm=True)
     by_key = {(r.key, r.mode): r for r in rows}
     assert ("svd", None) in by_key and ("copy", None) in by_key
     assert ("torchrot", "one_step") in by_key  # recorded data count as warm data
@@ -278,35 +280,35 @@ def test_benchmark_times_methods_on_recorded_data(tmp_path):
         if r.layout == "aos" and r.mode in soa and r.variant == "conservative" and r.isa is None:
             assert soa[r.mode].max_error == pytest.approx(r.max_error, rel=1e-12), r.method
     # the same data without warm=True: the warm-start-only methods are left out
-    cold = micro.run_case("apps", "arap", M[:50], init[:50], 1, methods, 1, 0.001, log=lambda s: None)
+    cold = cases.run_case("apps", "arap", M[:50], init[:50], 1, methods, 1, 0.001, log=lambda s: None)
     assert not any(r.mode == "one_step" for r in cold)
 
 
 def test_rotation_layer_rows():
     """The rotation-layer stage: one row per batch, every time from the same run."""
-    rows = micro.rotation_layer((8, 40), min_run_time=0.001, repeats=1)
+    rows = workloads.rotation_layer((8, 40), min_run_time=0.001, repeats=1)
     assert [r["batch"] for r in rows] == [8, 40]
     for r in rows:
         assert r["torchrot_vs_svd"] == pytest.approx(r["torchrot_us"] / r["svd_autograd_us"])
         assert r["autograd_floor_us"] > 0
-    assert "| 40 |" in micro.format_layer_table(rows)
+    assert "| 40 |" in tables.format_layer_table(rows)
 
 
 def test_registration_rows():
     """The registration stage: one row per dtype and shape, times and accuracy from the same run."""
-    rows = micro.registration_rows(((1, 20), (3, 10)), (torch.float32, torch.float64), rounds=1, min_run_time=0.001)
+    rows = workloads.registration_rows(((1, 20), (3, 10)), (torch.float32, torch.float64), rounds=1, min_run_time=0.001)
     assert [(r["dtype"], r["problems"], r["points"]) for r in rows] == \
         [("float32", 1, 20), ("float32", 3, 10), ("float64", 1, 20), ("float64", 3, 10)]
     for r in rows:
         assert r["speedup_vs_svd"] == pytest.approx(r["svd_us"] / r["torchrot_us"])
         assert r["copy_us"] > 0
         assert r["max_r_error"] < (1e-5 if r["dtype"] == "float32" else 1e-12)
-    assert "| 3 x 10 | float64 |" in micro.format_registration_table(rows)
+    assert "| 3 x 10 | float64 |" in tables.format_registration_table(rows)
 
 
 def test_report_tables_select_rows_by_field():
     def row(method, key, group, isa=None, ns=10.0, data="arap"):
-        return micro.Row("apps", data, method, "float32", 100, 1, ns, isa=isa, group=group, key=key,
+        return Row("apps", data, method, "float32", 100, 1, ns, isa=isa, group=group, key=key,
                          max_error=0.0, share_above_1e3=0.0, speedup_vs_svd=1000.0 / ns)
 
     rows = [row("copy", "copy", "floor"), row("svd (renamed)", "svd", "baseline", ns=1000.0),
@@ -432,7 +434,7 @@ def test_package_layering_no_cycles_and_library_never_imports_bench():
     for m in graph:
         if m not in state:
             visit(m, [])
-    assert "torchrot.bench.micro" in graph["torchrot.bench.cli"]
+    assert "torchrot.bench.plans" in graph["torchrot.bench.cli"]
     assert graph["torchrot.__main__"] == {"torchrot.bench.cli"}
 
 

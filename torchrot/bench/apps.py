@@ -14,15 +14,23 @@ import dataclasses
 import json
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import torch
 
 from torchrot.apps.meshes import capsule, load_surface, octopus
-from torchrot.bench import data, experiments, figures, micro, report
+from torchrot.bench import data, experiments, figures, report
+from torchrot.bench.cases import run_checked_case
+from torchrot.bench.registry import Method, all_methods, supported_isas
+from torchrot.bench.rows import Row, row_value
 from torchrot.bench.sessions import DropScript, HandleScript
 from torchrot.bench.statistics import recording_statistics
+from torchrot.bench.tables import for_terminal, group_tables, table_load
+from torchrot.bench.trust import legend
+
+__all__ = ["AppsPlan", "FULL", "QUICK", "apps_cases", "markdown", "print_summary", "rewrite", "run_apps", "run_table",
+           "table_methods", "write_apps"]
 
 
 @dataclass
@@ -88,22 +96,23 @@ def _arap_mesh(plan: AppsPlan):
     return load_surface(plan.arap.mesh_path) if plan.arap.mesh_path else capsule(plan.arap.resolution)
 
 
-def table_methods(plan: AppsPlan) -> list[micro.Method]:
+def table_methods(plan: AppsPlan) -> list[Method]:
     """Every benchmark method; torchrot with its scalar kernel (Table 1, the
     paper's non-vectorized code) and its best kernel (Table 2), or every kernel."""
-    isas = micro.supported_isas()
+    isas = supported_isas()
     kernels = isas if plan.all_isas else ["scalar", isas[-1]]
-    return micro.all_methods(kernels, ("newton", "conservative"), comparison_n=plan.comparison_n)
+    return all_methods(kernels, ("newton", "conservative"), comparison_n=plan.comparison_n)
 
 
 def run_table(plan: AppsPlan, name: str, dtype: torch.dtype, cache: str | None,
-              log: Callable[[str], None] = print, methods: list[micro.Method] | None = None) -> list[micro.Row]:
+              log: Callable[[str], None] = print, methods: list[Method] | None = None) -> list[Row]:
     """Tables 1 and 2 rows of recorded data set ``name``: ``plan.table_n``
-    matrices drawn from it, every method, 1 thread (as the paper)."""
+    matrices drawn from it, every method, 1 thread (as the paper); suspicious
+    rows re-timed (:func:`torchrot.bench.cases.run_checked_case`)."""
     M, init = data.pairs(name, plan.table_n, dtype, configs={"arap": plan.arap, "elasticity": plan.elasticity},
                          cache=cache)
-    return micro.run_case("apps", name, M, init, 1, methods or table_methods(plan), plan.repeats,
-                          plan.min_run_time, log, warm=True, slow_repeats=plan.slow_repeats)
+    return run_checked_case("apps", name, M, init, 1, methods or table_methods(plan), plan.repeats,
+                            plan.min_run_time, log, warm=True, slow_repeats=plan.slow_repeats)
 
 
 def _label(dtype: torch.dtype) -> str:
@@ -232,6 +241,11 @@ def markdown(results: dict, rows: list, machine: dict | None = None) -> str:
                   "torchrot's scalar kernel", "", report.table1(rows, dtype=dtype), "",
                   f"## Table 2 analogue ({dtype}, 1 thread): vectorized torchrot over torch.linalg.svd and "
                   "libigl's McAdams et al. SVD", "", report.table2(rows, dtype=dtype), ""]
+    for key, table in group_tables(rows).items():
+        load = table_load(table)
+        if load:
+            parts.append(f"- {key[1]}, {key[2]}: {load.line()}")
+    parts += [""] + ([legend(), ""] if any(row_value(r, "suspicion") for r in rows) else [])
     parts += ["## Local vs global step (Fig. 6)", ""]
     for label, timings in results["timings"].items():
         parts += [f"Local step in {label}:", "", report.phase_table(timings), ""]
@@ -250,18 +264,23 @@ def markdown(results: dict, rows: list, machine: dict | None = None) -> str:
     return "\n".join(parts)
 
 
-def print_summary(results: dict, rows: list, log: Callable[[str], None] = print) -> None:
-    """Prints the tables and the libigl comparison."""
+def print_summary(results: dict, rows: list, log: Callable[[str], None] = print,
+                  report_path: str | None = None) -> None:
+    """Prints the tables (those wider than the terminal as a pointer to
+    ``report_path``, the apps.md that holds them) and the libigl comparison."""
+    where = report_path or "apps.md (--output)"
     log("\n## Recorded data (Fig. 5)\n")
-    log(report.statistics_table(results["statistics"]))
+    log(for_terminal(report.statistics_table(results["statistics"]), where))
     for dtype in sorted({r.dtype for r in rows}):
         log(f"\n## Table 1 analogue ({dtype}, 1 thread, recorded data): speed-up over torch.linalg.svd\n")
-        log(report.table1(rows, dtype=dtype))
+        log(for_terminal(report.table1(rows, dtype=dtype, narrow=True), where))
         log(f"\n## Table 2 analogue ({dtype}, 1 thread): vectorized torchrot\n")
-        log(report.table2(rows, dtype=dtype))
+        log(for_terminal(report.table2(rows, dtype=dtype, narrow=True), where))
+    if any(r.suspicion for r in rows):
+        log(legend())
     for label, timings in results["timings"].items():
         log(f"\n## Local vs global step per iteration, ms (Fig. 6), local step in {label}\n")
-        log(report.phase_table(timings))
+        log(for_terminal(report.phase_table(timings), where))
     validation = results["validation"]
     log(f"\n## ARAP against igl.arap_solve ({validation['mesh']}, {validation['vertices']:,} vertices), "
         "relative energy difference\n")

@@ -1,5 +1,7 @@
 """``python -m torchrot bench [--full] [options]``: the microbenchmark, then
-the applications part, as numbered stages with the elapsed time."""
+the applications part, as numbered stages with the elapsed time; the report
+(narrow tables on the terminal, every column in the files) ends with a
+headline of at most :data:`torchrot.bench.summary.MAX_LINES` lines."""
 from __future__ import annotations
 
 import argparse
@@ -11,25 +13,22 @@ import time
 
 import torch
 
-from torchrot.bench import data, micro
+from torchrot.bench import data
+from torchrot.bench.machine import Load, load_average, machine_info
+from torchrot.bench.options import DTYPES, data_sets, dtype_name, max_threads, positive_int
+from torchrot.bench.plans import FULL, QUICK, plan_cases
 from torchrot.bench.progress import Progress
-from torchrot.testing import DISTRIBUTIONS
+from torchrot.bench.registry import WARM_DATA
+from torchrot.bench.results import write_results
+from torchrot.bench.summary import headline
+from torchrot.bench.tables import for_terminal, format_layer_table, format_registration_table, format_tables_narrow
+from torchrot.bench.workloads import registration_rows, rotation_layer, single_matrix_overhead
 
-DTYPES = {"float32": torch.float32, "float64": torch.float64}
+__all__ = ["FULL_RUN_MINUTES", "bench", "main", "parser"]
 
-
-def _positive_int(text: str) -> int:
-    value = int(float(text))  # accepts 1e5
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
-    return value
-
-
-def _data_set(text: str) -> str:
-    known = sorted(DISTRIBUTIONS) + list(data.RECORDED)
-    if text not in known:
-        raise argparse.ArgumentTypeError(f"unknown data set {text!r}; known: {', '.join(known)}")
-    return text
+# Wall time of the paper-scale run (--full) on this project's 2-core VM:
+# benchmarks/run_full_suite.py took 4,972 s at 07da00b.
+FULL_RUN_MINUTES = 80
 
 
 def _folder_size(folder: str) -> int:
@@ -47,9 +46,21 @@ def _missing_app_modules() -> list[str]:
     return [m for m in ("scipy", "igl") if importlib.util.find_spec(m) is None]
 
 
-# Wall time of the paper-scale run (--full) on this project's 2-core VM:
-# benchmarks/run_full_suite.py took 4,972 s at 07da00b.
-FULL_RUN_MINUTES = 80
+def _choices(values) -> str:
+    return ", ".join(str(v) for v in values)
+
+
+def _data_set(text: str) -> str:
+    if text not in data_sets():
+        raise argparse.ArgumentTypeError(f"unknown data set {text!r}; known: {_choices(data_sets())}")
+    return text
+
+
+def _thread_count(text: str) -> int:
+    threads = positive_int(text)
+    if threads > max_threads():
+        raise argparse.ArgumentTypeError(f"at most {max_threads()} (this machine's CPUs), got {text}")
+    return threads
 
 
 def parser() -> argparse.ArgumentParser:
@@ -65,12 +76,23 @@ def parser() -> argparse.ArgumentParser:
                     f"dtypes, 57k-vertex and 24k-tet solvers: about {FULL_RUN_MINUTES} minutes).")
     bench.add_argument("--full", action="store_true",
                        help=f"the paper-scale run (about {FULL_RUN_MINUTES} minutes on 2 cores)")
-    bench.add_argument("--n", type=_positive_int, help="matrices per data set in the method tables")
-    bench.add_argument("--scaling-n", type=_positive_int, nargs="+", help="N values of the scaling sweep")
-    bench.add_argument("--data", type=_data_set, nargs="+", help="data sets of the method tables")
-    bench.add_argument("--dtype", nargs="+", choices=sorted(DTYPES))
-    bench.add_argument("--threads", type=_positive_int, nargs="+")
-    bench.add_argument("--repeats", type=_positive_int, help="timed runs per row; the median is reported")
+    bench.add_argument("--n", type=positive_int, help="matrices per data set in the method tables (default "
+                                                      f"{QUICK.methods_n:,}; --full {FULL.methods_n:,})")
+    bench.add_argument("--scaling-n", type=positive_int, nargs="+", metavar="N",
+                       help=f"N values of the scaling sweep (default {_choices(QUICK.scaling_n)}; --full "
+                            f"{_choices(FULL.scaling_n)})")
+    bench.add_argument("--data", type=_data_set, nargs="+", metavar="NAME",
+                       help=f"data sets of the method tables, any of: {_choices(data_sets())} (default "
+                            f"{_choices(QUICK.methods_data)})")
+    bench.add_argument("--dtype", type=str, nargs="+", choices=sorted(DTYPES), metavar="DTYPE",
+                       help=f"dtypes, any of: {_choices(sorted(DTYPES))} (default "
+                            f"{_choices(dtype_name(d) for d in QUICK.dtypes)}; --full "
+                            f"{_choices(dtype_name(d) for d in FULL.dtypes)})")
+    bench.add_argument("--threads", type=_thread_count, nargs="+", metavar="T",
+                       help=f"thread counts of the method tables, each 1 to {max_threads()} (this machine's CPUs; "
+                            f"default {_choices(QUICK.threads)})")
+    bench.add_argument("--repeats", type=positive_int, help="timed runs per row; the median is reported (default "
+                                                            f"{QUICK.repeats}; --full {FULL.repeats})")
     bench.add_argument("--output", default="results",
                        help="folder for bench.json/.md/.png and apps.json/.md/fig*.png (default: ./results; "
                             "'' to write nothing)")
@@ -86,7 +108,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def _plans(args: argparse.Namespace):
-    plan = micro.FULL if args.full else micro.QUICK
+    plan = FULL if args.full else QUICK
     overrides = {
         "scaling_n": tuple(args.scaling_n) if args.scaling_n else None,
         "methods_n": args.n,
@@ -109,6 +131,15 @@ def _plans(args: argparse.Namespace):
     return plan, apps_plan
 
 
+def _with_load(run, loads: dict, key: str):
+    """``run`` as a stage that records the machine's load around it in ``loads[key]``."""
+    def stage():
+        before = load_average()
+        run()
+        loads[key] = Load.around(before)
+    return stage
+
+
 def bench(args: argparse.Namespace, log=print) -> int:
     clock = time.perf_counter()
     plan, apps_plan = _plans(args)
@@ -117,7 +148,7 @@ def bench(args: argparse.Namespace, log=print) -> int:
     missing = _missing_app_modules()
     run_micro, run_apps = not args.apps_only, not args.no_apps and not missing
     log(f"torchrot benchmark ({'full' if args.full else 'quick; --full for the paper-scale run'}): "
-        f"{micro.machine_info()}")
+        f"{machine_info()}")
     log(f"results:  {output + os.sep if output else 'not written (--output ' + repr(args.output) + ')'}")
     if run_apps or (run_micro and set(plan.methods_data) & set(data.RECORDED)):
         log(f"data set cache: {cache}{os.sep} (recorded solver data, {_folder_size(cache) / 1e6:.0f} MB now; "
@@ -130,26 +161,29 @@ def bench(args: argparse.Namespace, log=print) -> int:
     overhead: dict = {}
     layer: list = []
     registration: list = []
+    loads: dict = {}  # the load around each workload table, by its key in bench.json
     if run_micro:
         def pairs(name: str, n: int, dtype: torch.dtype):
             configs = {} if apps_plan is None else {"arap": apps_plan.arap, "elasticity": apps_plan.elasticity}
             return data.pairs(name, n, dtype, configs=configs, cache=args.cache)
 
         def warm(name: str) -> bool:
-            return name in micro.WARM_DATA or name in data.RECORDED
+            return name in WARM_DATA or name in data.RECORDED
 
-        for title, run in micro.plan_cases(plan, pairs, warm, log):
+        for title, run in plan_cases(plan, pairs, warm, log):
             stages.append((title, lambda run=run: rows.extend(run())))
-        stages.append(("single-matrix call overhead", lambda: overhead.update(
-            micro.single_matrix_overhead(plan.overhead_run_time))))
+        stages.append(("single-matrix call overhead", _with_load(lambda: overhead.update(
+            single_matrix_overhead(plan.overhead_run_time)), loads, "single_matrix_us")))
         stages.append((f"rotation layer (nn.RotationFit forward + backward), batch "
                        f"{', '.join(f'{b:,}' for b in plan.layer_batches)}",
-                       lambda: layer.extend(micro.rotation_layer(plan.layer_batches, plan.overhead_run_time))))
+                       _with_load(lambda: layer.extend(rotation_layer(plan.layer_batches, plan.overhead_run_time)),
+                                  loads, "rotation_layer")))
         stages.append((f"point-set registration (rigid_registration against the SVD closed form), problems x "
                        f"points {', '.join(f'{p:,} x {n:,}' for p, n in plan.registration_shapes)}, "
-                       f"{', '.join(str(d).removeprefix('torch.') for d in plan.dtypes)}",
-                       lambda: registration.extend(micro.registration_rows(
-                           plan.registration_shapes, plan.dtypes, plan.registration_rounds, plan.overhead_run_time))))
+                       f"{', '.join(dtype_name(d) for d in plan.dtypes)}",
+                       _with_load(lambda: registration.extend(registration_rows(
+                           plan.registration_shapes, plan.dtypes, plan.registration_rounds, plan.overhead_run_time)),
+                           loads, "registration")))
     apps_results: dict = {}
     apps_rows: list = []
     if run_apps:
@@ -174,32 +208,35 @@ def bench(args: argparse.Namespace, log=print) -> int:
         torch.set_num_threads(threads)
     progress.stage(stages[-1][0])
     written: list[str] = []
+    bench_md = os.path.join(output, "bench.md") if output else "bench.md (--output)"
     if run_micro:
-        log("\nSingle-matrix call (us):")
+        log("\nSingle-matrix call (us)" + (f"\n{loads['single_matrix_us'].line()}:" if overhead else ":"))
         for name, us in overhead.items():
             log(f"  {name:58s} {us:7.2f}")
-        log("\nRotation layer, forward + backward (us):\n" + micro.format_layer_table(layer))
-        log("\nPoint-set registration, rigid_registration(x, y, scale=True) (us per call):\n"
-            + micro.format_registration_table(registration))
+        log(f"\nRotation layer, forward + backward (us)\n{loads['rotation_layer'].line()}:\n"
+            + for_terminal(format_layer_table(layer), bench_md))
+        log(f"\nPoint-set registration, rigid_registration(x, y, scale=True) (us per call)\n"
+            f"{loads['registration'].line()}:\n" + for_terminal(format_registration_table(registration), bench_md))
         for part in ("scaling", "methods"):
-            log(f"\n## {part}\n")
-            log(micro.format_table([r for r in rows if r.part == part]))
+            log(f"\n## {part} (every column: {bench_md})\n")
+            log(for_terminal(format_tables_narrow([r for r in rows if r.part == part]), bench_md))
         if output:
-            written += micro.write_results(rows, overhead, output, layer, registration)
+            written += write_results(rows, overhead, output, layer, registration, loads)
     if run_apps:
         from torchrot.bench import apps
 
-        apps.print_summary(apps_results, apps_rows, log)
+        apps.print_summary(apps_results, apps_rows, log, os.path.join(output, "apps.md") if output else None)
         if output:
-            written += apps.write_apps(apps_results, apps_rows, output, micro.machine_info())
+            written += apps.write_apps(apps_results, apps_rows, output, machine_info())
     log("")
     for path in written:
         log(f"wrote {path}")
     log(f"\ndone in {time.perf_counter() - clock:.0f} s.")
-    if output:
-        log(f"results:  {output}{os.sep} ({len(written)} files: bench.md/apps.md are the reports)")
     if run_apps or (run_micro and set(plan.methods_data) & set(data.RECORDED)):
         log(f"data set cache: {cache}{os.sep} ({_folder_size(cache) / 1e6:.0f} MB; delete it to re-record)")
+    log("")
+    for line in headline(rows, layer, registration, apps_rows, output, torch.ops.torchrot.cpu_kernel()):
+        log(line)
     return 0
 
 

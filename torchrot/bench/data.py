@@ -25,7 +25,13 @@ from dataclasses import dataclass
 
 import torch
 
+from torchrot.bench.progress import progress_bar
 from torchrot.bench.recording import Recorder, Recording, is_complete, load_recording
+
+__all__ = [
+    "ArapDataConfig", "DATA_VERSION", "DEFAULTS", "ElasticityDataConfig", "RECORDED", "cache_root",
+    "dataset_folder", "ensure_dataset", "load_dataset", "pairs", "warm_start_pairs"
+]
 
 #: Bumped whenever the generators change what they record (old caches are then ignored).
 DATA_VERSION = 1
@@ -103,14 +109,6 @@ def dataset_folder(name: str, config=None, cache: str | None = None) -> str:
     return os.path.join(cache_root(cache), "datasets", f"{name}-{digest}")
 
 
-def _progress_bar(total: int, desc: str, enabled: bool):
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:  # tqdm is optional (the "bench" extra installs it)
-        return None
-    return tqdm(total=total, desc=desc, unit="frame", disable=not enabled, leave=False)
-
-
 def _generate_arap(config: ArapDataConfig, folder: str, progress: bool) -> dict:
     from torchrot.apps.arap import ArapSolver
     from torchrot.apps.local_step import LocalStep
@@ -122,7 +120,7 @@ def _generate_arap(config: ArapDataConfig, folder: str, progress: bool) -> dict:
     handles, _ = script.handles(mesh.V)
     solver = ArapSolver(mesh.V, mesh.F, handles, LocalStep(config.fit))
     recorder = Recorder(folder, "arap", mesh.name, config.max_per_step)
-    bar = _progress_bar(config.frames, f"recording arap ({len(mesh.V):,} vertices)", progress)
+    bar = progress_bar(config.frames, f"recording arap ({len(mesh.V):,} vertices), frames", progress)
     run_arap_session(solver, script, config.iterations, recorder, bar.update if bar else None)
     if bar:
         bar.close()
@@ -140,7 +138,7 @@ def _generate_elasticity(config: ElasticityDataConfig, folder: str, progress: bo
     solver = ElasticitySolver(mesh.V, mesh.F, fit=LocalStep(config.fit), iterations=config.iterations)
     script = DropScript(frames=config.frames)
     recorder = Recorder(folder, "elasticity", mesh.name, config.max_per_step)
-    bar = _progress_bar(config.frames, f"recording elasticity ({len(mesh.F):,} tets)", progress)
+    bar = progress_bar(config.frames, f"recording elasticity ({len(mesh.F):,} tets), frames", progress)
     run_elasticity_session(solver, script, recorder, bar.update if bar else None)
     if bar:
         bar.close()
@@ -211,6 +209,6 @@ def pairs(name: str, n: int, dtype: torch.dtype = torch.float64, seed: int = 0, 
     :func:`torchrot.testing.make_warm_start`."""
     if name in RECORDED:
         return warm_start_pairs(name, n, seed, dtype, (configs or {}).get(name), cache, progress)
-    from torchrot.testing import make_warm_start
+    from torchrot.testing.data import make_warm_start
 
     return make_warm_start(name, n, seed, dtype)

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import contextlib
 import time
+from collections.abc import Iterator
 from dataclasses import replace
-from typing import Iterator
 
 import numpy as np
 import torch
@@ -32,6 +32,12 @@ from torchrot.apps.local_step import LocalStep
 from torchrot.apps.meshes import Mesh
 from torchrot.bench.sessions import DropScript, HandleScript, run_arap_session, run_elasticity_session
 from torchrot.bench.timing import PhaseTimer
+
+__all__ = [
+    "FITS", "GLOBAL", "LOCAL", "arap_energy_trace", "arap_phase_times", "arap_solver", "arap_start_state",
+    "elasticity_energy_trace", "elasticity_phase_times", "elasticity_start_state", "torch_threads",
+    "validate_arap_against_libigl"
+]
 
 FITS = ("svd", "one_step", "converged")
 LOCAL = ("assembly", "fit")

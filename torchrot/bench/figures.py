@@ -1,11 +1,17 @@
-"""PNG versions of the paper's Figs. 5, 6 and 7 from the experiments' results.
-
-Each function takes the plain-data results of :mod:`torchrot.bench.statistics`
-/ :mod:`torchrot.bench.experiments` and writes one PNG (matplotlib, Agg).
+"""The PNG figures of ``python -m torchrot bench`` (matplotlib, Agg): the
+microbenchmark's scaling sweep (:func:`plot_scaling`, from its rows) and the
+paper's Figs. 5, 6 and 7 (from the plain-data results of
+:mod:`torchrot.bench.statistics` / :mod:`torchrot.bench.experiments`).
+Every number drawn comes from the run's results.
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
+
+__all__ = ["SCALING_COLORS", "method_colors", "plot_fig5", "plot_fig6", "plot_fig7", "plot_scaling",
+           "scaling_figure"]
 
 FIT_LABELS = {"svd": "torch.linalg.svd", "one_step": "torchrot 1-step warm start",
               "converged": "torchrot converged (warm start)"}
@@ -162,5 +168,81 @@ def plot_fig7(traces: dict, path: str) -> None:
         ax.grid(True, which="both", alpha=0.25)
     fig.suptitle("Fig. 7 analogue: energy vs wall-clock time, same start for every rotation fit")
     fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+#: The scaling plot's colours, one per method in the order methods first
+#: appear (matplotlib's tab10, then tab20's lighter shades).
+SCALING_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
+                  "#bcbd22", "#17becf", "#aec7e8", "#ffbb78", "#98df8a", "#ff9896", "#c5b0d5", "#c49c94",
+                  "#f7b6d2", "#c7c7c7", "#dbdb8d", "#9edae5")
+
+
+def method_colors(methods: Iterable[str]) -> dict[str, str]:
+    """One colour per distinct method, in order of first appearance: the one
+    mapping every panel of the scaling figure draws with, so a method keeps
+    its colour across panels. Raises ValueError beyond len(SCALING_COLORS) methods."""
+    names = list(dict.fromkeys(methods))
+    if len(names) > len(SCALING_COLORS):
+        raise ValueError(f"{len(names)} methods, but only {len(SCALING_COLORS)} distinct colours")
+    return dict(zip(names, SCALING_COLORS))
+
+
+def scaling_figure(rows, machine: dict | None = None):
+    """The scaling sweep's figure: ns/matrix against N (log-log), a panel per
+    data set, one line per method in its :func:`method_colors` colour (the
+    ``copy_`` floor dashed), suspicious timings crossed out, and one legend
+    below the panels. ``rows``: the run's :class:`~torchrot.bench.rows.Row` s
+    (those of the "scaling" part are drawn)."""
+    plt = _pyplot()
+    from matplotlib.lines import Line2D
+
+    scaling = [r for r in rows if r.part == "scaling"]
+    data_sets = list(dict.fromkeys(r.data for r in scaling))
+    colors = method_colors(r.method for r in scaling)
+    fig, axes = plt.subplots(1, len(data_sets), figsize=(6.5 * len(data_sets), 6.2), squeeze=False, sharey=True)
+    flagged = False
+    for ax, data in zip(axes[0], data_sets):
+        for method, color in colors.items():
+            points = sorted((r.n, r.ns_per_matrix, bool(r.suspicion)) for r in scaling
+                            if r.data == data and r.method == method)
+            if not points:
+                continue
+            n, ns, suspicious = zip(*points)
+            floor = any(r.key == "copy" for r in scaling if r.method == method)
+            ax.plot(n, ns, "--" if floor else "-", marker="o", color=color, label=method)
+            marked = [(x, y) for x, y, s in points if s]
+            if marked:
+                flagged = True
+                ax.plot(*zip(*marked), linestyle="none", marker="x", markersize=11, color="k")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("N (matrices per call)")
+        kinds = sorted({(r.dtype, r.threads) for r in scaling if r.data == data})
+        ax.set_title(f"{data} data, " + "; ".join(f"{dtype}, {threads} thread{'s' * (threads > 1)}"
+                                                  for dtype, threads in kinds))
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel("ns per matrix (median)")
+    handles = [Line2D([], [], color=c, marker="o", linestyle="--" if any(
+        r.key == "copy" for r in scaling if r.method == m) else "-", label=m) for m, c in colors.items()]
+    if flagged:
+        handles.append(Line2D([], [], color="k", marker="x", linestyle="none", markersize=9,
+                              label="suspicious timing (marked ! in bench.md)"))
+    columns = 3
+    fig.legend(handles=handles, loc="lower center", ncol=columns, fontsize=9, frameon=False)
+    legend_rows = -(-len(handles) // columns)
+    machine = machine or {}
+    fig.suptitle(f"torchrot vs baselines ({machine.get('aten_cpu_capability', '?')}, "
+                 f"{machine.get('processor', '?')})")
+    # fixed margins (tight_layout: seconds), the bottom one sized to the legend below the panels
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.1 + 0.045 * legend_rows, top=0.9, wspace=0.08)
+    return fig
+
+
+def plot_scaling(rows, path: str, machine: dict | None = None) -> None:
+    """PNG of :func:`scaling_figure` at ``path``."""
+    plt = _pyplot()
+    fig = scaling_figure(rows, machine)
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import torch
 
+__all__ = ["MANIFEST", "Recorder", "Recording", "is_complete", "load_recording"]
+
 Tensor = torch.Tensor
 MANIFEST = "manifest.json"
 

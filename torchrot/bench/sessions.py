@@ -16,8 +16,8 @@ that sees every local step.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -25,6 +25,8 @@ from torchrot.apps.arap import ArapSolver, ArapState
 from torchrot.apps.elasticity import ElasticitySolver, ElasticState
 from torchrot.apps.local_step import LocalStep
 from torchrot.apps.meshes import end_regions
+
+__all__ = ["DropScript", "HandleScript", "run_arap_session", "run_elasticity_session"]
 
 
 def _axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:

@@ -13,8 +13,11 @@ import math
 import numpy as np
 import torch
 
-import torchrot
 from torchrot.bench.recording import Recording
+from torchrot.fitting import fit_rotation
+from torchrot.reference import rotation_svd
+
+__all__ = ["condition_numbers", "one_step_errors", "recording_statistics", "rotation_angle"]
 
 Tensor = torch.Tensor
 
@@ -36,7 +39,7 @@ def condition_numbers(M: Tensor) -> Tensor:
 
 def one_step_errors(M: Tensor, R_prev: Tensor, R_star: Tensor, variant: str) -> Tensor:
     """|R_1 - R*|_F of one Cayley step from R_prev (float64), ``(n,)``."""
-    R1 = torchrot.fit_rotation(M.double(), R_prev.double(), max_iter=1, variant=variant)
+    R1 = fit_rotation(M.double(), R_prev.double(), max_iter=1, variant=variant)
     return (R1 - R_star).norm(dim=(-2, -1))
 
 
@@ -66,7 +69,7 @@ def recording_statistics(recording: Recording, sample: int = 200_000, scatter: i
     gen = torch.Generator().manual_seed(seed)
     index = torch.randperm(n, generator=gen)[: min(sample, n)]
     M, R_prev = recording.M[index], recording.R_prev[index]
-    R_star = torchrot.rotation_svd(M)
+    R_star = rotation_svd(M)
     angle = torch.rad2deg(rotation_angle(R_prev.mT @ R_star)).numpy()
     cond = condition_numbers(M).numpy()
     stats = {
