@@ -114,7 +114,7 @@ X86_64_KERNELS = [  # x86-64 targets only
 # Compile seconds on a 2-core x86-64 VM (GCC 12, torch 2.13): the parallel
 # build starts the longest first, so that no long object is left to the end.
 COMPILE_SECONDS = {"csrc/cpu/kernel_default.cpp": 54, "csrc/cpu/kernel_avx2.cpp": 22, "csrc/cpu/kernel_avx512.cpp": 20,
-                   "csrc/autograd.cpp": 18, "csrc/module.cpp": 16, "csrc/ops.cpp": 12, "csrc/cpu/kernel_scalar.cpp": 11}
+                   "csrc/autograd.cpp": 18, "csrc/module.cpp": 16, "csrc/ops/checks.cpp": 12, "csrc/cpu/kernel_scalar.cpp": 11}
 
 # What the compiler's preprocessor says about its target (the test of
 # TORCHROT_X86_64_KERNELS in csrc/cpu/kernel_table.h, and OpenMP).

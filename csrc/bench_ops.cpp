@@ -1,6 +1,6 @@
 // Operators for the benchmarks only, outside the library's schema
-// (torch.ops.torchrot_bench.*; their fake kernels: torchrot/bench/ops.py):
-// the check of the warm starts that fit_rotation_out makes before writing,
+// (torch.ops.torchrot_bench.*, CPU kernels only: the benchmarks call them
+// eagerly on CPU tensors): the check of the warm starts that fit_rotation_out makes before writing,
 // timed on its own (benchmarks/atomic_cost.py, speed_targets.py), and
 // operators that do nothing, the yardsticks for the fixed cost of a
 // custom-op call, with one argument, and with fit_rotation's signature and an

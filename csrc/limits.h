@@ -37,18 +37,29 @@ constexpr double kInitTolerance = 5e-2;
 
 // Below this deviation (in units of the compute dtype's eps) a warm start is
 // used as it is; above it (a rotation of lower precision: fitted in float32
-// and fed to a float64 fit, rounded to float16 or bfloat16, ...) it first
-// takes Newton-Schulz steps until below it (at most kInitCleanSteps, each
-// taking a deviation d to ~(3/4) d^2: 5e-2 -> 1.9e-3 -> 2.7e-6 -> 5.5e-12 ->
-// 2e-23). It must be at the compute precision: Cayley factors are
-// orthogonal, so the iteration keeps R's deviation, and its fixed point makes
-// R^T M symmetric for that R, which moves the converged rotation by about
-// the deviation times M's conditioning (float32 rotations used as float64
-// warm starts below a former threshold of 1e-7 gave errors up to 1.5e-6,
-// against 2e-13 from a cold start). 8 eps is above the computed deviation of
-// every fitted rotation (at most 3.3 eps, measured on 20,000 fits per
-// dtype), so results fed back are used as they are.
-constexpr double kInitCleanEps = 8;
+// and fed to a float64 fit, rounded to float16 or bfloat16, or a result fed
+// back whose deviation has drifted) it first takes Newton-Schulz steps until
+// below it (at most kInitCleanSteps, each taking a deviation d to ~(3/4)
+// d^2: 5e-2 -> 1.9e-3 -> 2.7e-6 -> 5.5e-12 -> 2e-23). It must be at the
+// compute precision: Cayley factors are orthogonal, so the iteration keeps
+// R's deviation, and its fixed point makes R^T M symmetric for that R, which
+// moves the converged rotation by about the deviation times M's conditioning
+// (float32 rotations used as float64 warm starts below a former threshold of
+// 1e-7 gave errors up to 1.5e-6, against 2e-13 from a cold start). And it
+// bounds the drift of results fed back one step at a time, which are not
+// cleaned up themselves (kOneStepLargeStep): each such step adds at most
+// ~1.4 eps (measured, float32), so a chain of them stays within 5 + 1.4 eps
+// of orthonormality (plus an eps between the computed and the true
+// deviation), below the 1e-6 = 8.4 eps of float32's accuracy criterion.
+// 5 eps is above the computed deviation of a cleaned-up rotation (at most
+// 3.3 eps, measured on 20,000 fits per dtype).
+constexpr double kInitCleanEps = 5;
+// A one-step update (max_iter=1) cleans up its result with a Newton-Schulz
+// step only where the step was large, tan^2(theta / 2) >= this (theta ~
+// 28 degrees): there Q's rounding adds up to ~8 eps to R's deviation
+// (measured), below it at most ~1.4 (float32; ~2.3 float64), which the next
+// call's warm-start threshold (kInitCleanEps) absorbs.
+constexpr double kOneStepLargeStep = 0.0625;
 constexpr int kInitCleanSteps = 4;
 
 // A tiny step is the last only if undamped: its damping c - tr S is at most

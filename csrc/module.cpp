@@ -2,7 +2,7 @@
 // static initialisers of ops.cpp, which register torch.ops.torchrot.*. Its
 // Python functions: constants() hands the limits of limits.h, the status
 // codes of fit_rotation.h and the messages of messages.h to the Python
-// layers (torchrot/_limits.py), so that they are defined once;
+// layers (torchrot/_constants.py), so that they are defined once;
 // fit_rotation_eager() is the plain eager call of torchrot.fit_rotation.
 #include <Python.h>
 
@@ -120,6 +120,7 @@ PyObject* constants(PyObject*, PyObject*) {
                   set_item(dict, "INIT_TOLERANCE", PyFloat_FromDouble(kInitTolerance)) &&
                   set_item(dict, "INIT_CLEAN_EPS", PyFloat_FromDouble(kInitCleanEps)) &&
                   set_item(dict, "INIT_CLEAN_STEPS", PyLong_FromLong(kInitCleanSteps)) &&
+                  set_item(dict, "ONE_STEP_LARGE_STEP", PyFloat_FromDouble(kOneStepLargeStep)) &&
                   set_item(dict, "UNDAMPED_FLOAT", PyFloat_FromDouble(kUndampedFloat)) &&
                   set_item(dict, "UNDAMPED_DOUBLE", PyFloat_FromDouble(kUndampedDouble)) &&
                   set_item(dict, "OBJECTIVE_LAGUERRE_STEPS", PyLong_FromLong(kObjectiveLaguerreSteps)) &&

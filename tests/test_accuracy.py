@@ -16,6 +16,7 @@ import torchrot
 from torchrot._constants import CONVERGED_CAP, MAX_ESCAPES
 from torchrot.reference import cayley_rotation, fit_rotation_reference
 from torchrot.testing import (
+    conditioning,
     dtype_id,
     CRITERIA,
     DISTRIBUTIONS,
@@ -34,23 +35,28 @@ def _eye(dtype, batch=()):
     return torch.eye(3, dtype=dtype).expand(*batch, 3, 3)
 
 
-def _distance_limit(M: torch.Tensor) -> float:
-    """Bound on max |R - R*|_F for rotations fitted to the WELL_CONDITIONED
-    matrices M: 4x what a float32 SVD achieves on the same data (float32), an
-    absolute 1e-10 (float64)."""
+def _distance_limit(M: torch.Tensor) -> torch.Tensor:
+    """Per-matrix bound on |R - R*|_F for rotations fitted to the
+    WELL_CONDITIONED matrices M: in float32, 4x what a float32 SVD achieves
+    on the same data at worst, or 4 eps times the matrix's own conditioning
+    where that is larger (rounding moves the fit of an ill-conditioned
+    matrix by about eps kappa, whichever method: a uniform matrix of kappa
+    7.9e3 is fitted to 2.5e-4 to 3.8e-4, 0.7-1.0 eps kappa, by every build
+    and scale); in float64 an absolute 1e-10."""
     if M.dtype == torch.float64:
-        return 1e-10
+        return torch.full(M.shape[:-2], 1e-10, dtype=torch.float64)
     svd32 = rotation_errors(rotation_svd(M.float()), M)["distance"]
-    return 4 * svd32.max().item()
+    return torch.maximum(4 * svd32.max(), 4 * torch.finfo(torch.float32).eps * conditioning(M))
 
 
 def _assert_close_to_svd(R: torch.Tensor, M: torch.Tensor, what: str) -> None:
     dist = rotation_errors(R, M)["distance"]
-    limit = _distance_limit(M)
-    worst = int(dist.argmax())
-    assert dist.max().item() <= limit, (
-        f"{what}: max |R - R*| = {dist.max().item():.3g} > {limit:.3g} at matrix {worst} "
-        f"({int((dist > limit).sum())} of {dist.numel()} exceed it); M={M[worst].tolist()}"
+    limits = _distance_limit(M)
+    worst = int((dist / limits).argmax())
+    limit = limits.flatten()[worst].item()
+    assert bool((dist <= limits).all()), (
+        f"{what}: |R - R*| = {dist.flatten()[worst].item():.3g} > {limit:.3g} at matrix {worst} "
+        f"({int((dist > limits).sum())} of {dist.numel()} exceed their limits); M={M.reshape(-1, 3, 3)[worst].tolist()}"
     )
 
 
@@ -213,8 +219,7 @@ def test_scale_invariance(dtype, variant, scale, name, matrices):
     assert torch.isfinite(Ms).all() and (Ms.abs().amax((-2, -1)) >= torch.finfo(dtype).tiny).all()
     R, Rs = torchrot.fit_rotation(M, variant=variant), torchrot.fit_rotation(Ms, variant=variant)
     _assert_close_to_svd(Rs, Ms, f"{name}*{scale:g}/{variant}/{dtype_id(dtype)}")
-    limit = 2 * _distance_limit(M)
-    assert (R - Rs).norm(dim=(-2, -1)).max().item() <= limit
+    assert bool(((R - Rs).norm(dim=(-2, -1)) <= 2 * _distance_limit(M)).all())
 
 
 def test_transpose_and_rotation_equivariance(dtype, matrices):

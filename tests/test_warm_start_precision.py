@@ -198,3 +198,33 @@ def test_out_path_gives_the_fresh_results(warm_starts, max_iter, dtype):
     in_place = init.clone()
     torchrot.fit_rotation(M + 0.1, in_place, max_iter=max_iter, out=in_place)
     assert torch.equal(bits(in_place), bits(fresh.R))
+
+
+#: ||R^T R - I||_F that 1,000 chained in-place one-step updates must keep
+#: every R within (issue #38's drift bound), and det R > 0.
+DRIFT_BOUND = {torch.float32: 1e-6, torch.float64: 1e-14}
+
+
+@pytest.mark.parametrize("kernel", ["cpu", "generic"])
+def test_chained_in_place_one_steps_do_not_drift(kernel, dtype):
+    """A local-global solver's loop: 1,000 one-step updates in place, each from
+    the previous result, on covariances that move a little every iteration.
+    Every intermediate R stays a rotation to working precision (measured in
+    float64), whether the results are cleaned up at each step or only the
+    warm starts that need it."""
+    n = 64 if kernel == "cpu" else 16
+    gen = torch.Generator().manual_seed(40)
+    base = make_matrices("warm", n, 41, torch.float64)
+    R = torchrot.fit_rotation(base).to(dtype)
+    M = base.to(dtype)
+    eye = torch.eye(3, dtype=torch.float64)
+    worst = 0.0
+    with KERNELS[kernel]():
+        for step in range(1000):
+            M = M + 0.01 * torch.randn(M.shape, generator=gen, dtype=torch.float64).to(dtype)
+            torchrot.fit_rotation(M, R, max_iter=1, out=R)
+            Rd = R.double()
+            deviation = (Rd.mT @ Rd - eye).norm(dim=(-2, -1))
+            worst = max(worst, deviation.max().item())
+            assert (torch.linalg.det(Rd) > 0).all(), f"step {step}: det <= 0"
+    assert worst <= DRIFT_BOUND[dtype], f"{kernel}: |R^T R - I|_F reached {worst:.3g} > {DRIFT_BOUND[dtype]:g}"

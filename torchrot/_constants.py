@@ -18,7 +18,8 @@ from torchrot import _C
 __all__ = [
     "CONVERGED_CAP", "CPU_KERNELS", "DEFAULT_VARIANT", "ESTIMATE_SWITCH", "FitStatus", "GERSHGORIN_STEPS",
     "GRADIENT_EPS", "INIT_CLEAN", "INIT_CLEAN_EPS", "INIT_CLEAN_STEPS", "INIT_TOLERANCE", "MAX_CHECK_SLACK_EPS",
-    "MAX_ESCAPES", "MAX_GRADIENT_EPS", "MAX_ITER", "MESSAGES", "OBJECTIVE_LAGUERRE_STEPS", "SUPPORTED_DTYPES",
+    "MAX_ESCAPES", "MAX_GRADIENT_EPS", "MAX_ITER", "MESSAGES", "OBJECTIVE_LAGUERRE_STEPS", "ONE_STEP_LARGE_STEP",
+    "SUPPORTED_DTYPES",
     "UNDAMPED", "VARIANTS",
 ]
 
@@ -61,6 +62,9 @@ INIT_TOLERANCE: float = _CONSTANTS["INIT_TOLERANCE"]
 INIT_CLEAN_EPS: float = _CONSTANTS["INIT_CLEAN_EPS"]
 INIT_CLEAN: dict = {name: INIT_CLEAN_EPS * torch.finfo(getattr(torch, name)).eps for name in ("float32", "float64")}
 INIT_CLEAN_STEPS: int = _CONSTANTS["INIT_CLEAN_STEPS"]
+#: A one-step update cleans up its result where its step was at least this
+#: large (tan^2(theta / 2)); smaller steps stay within a few eps.
+ONE_STEP_LARGE_STEP: float = _CONSTANTS["ONE_STEP_LARGE_STEP"]
 #: A step is the last only if undamped: c - tr S <= UNDAMPED |tr S| (sqrt(eps),
 #: float32 / float64 compute).
 UNDAMPED: dict = {"float32": _CONSTANTS["UNDAMPED_FLOAT"], "float64": _CONSTANTS["UNDAMPED_DOUBLE"]}

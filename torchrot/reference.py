@@ -7,7 +7,7 @@ algorithm as the C++ kernel (csrc/kernel/), written once in
 components with per-matrix masks: it runs on any device and on ``meta``
 tensors, and compiles without a graph break. It is the kernel of
 ``torch.ops.torchrot.fit_rotation`` on devices without a native kernel (CUDA
-and XPU tensors run it compiled, see torchrot.generic.COMPILED_DEVICE_TYPES).
+and XPU tensors run it compiled, see torchrot.generic.driver.COMPILED_DEVICE_TYPES).
 
 Convention everywhere: R (det R = +1) maximises tr(R^T M); for centred point
 sets, M = sum_i w_i y_i x_i^T gives R x_i ~ y_i (column vectors).
@@ -18,8 +18,18 @@ import torch
 
 from torchrot._checks import bad_init_error, check_all, check_backward, check_matrix_arg
 from torchrot._constants import GRADIENT_EPS
-from torchrot.generic import fit_rotation_backward_generic, fit_rotation_generic
+from torchrot.generic.driver import fit_rotation_backward_generic, fit_rotation_generic
+from torchrot.generic.quaternion import _horn, _quaternion_rotation
 
+__all__ = [
+    "cayley_rotation",
+    "fit_rotation_backward_reference",
+    "fit_rotation_reference",
+    "horn_matrix",
+    "quaternion_rotation",
+    "rigid_registration_svd",
+    "rotation_svd",
+]
 
 
 def rotation_svd(M: torch.Tensor) -> torch.Tensor:
@@ -71,19 +81,11 @@ def rigid_registration_svd(x: torch.Tensor, y: torch.Tensor, weights: torch.Tens
     return R, t, s
 
 
-def _skew_vector(S: torch.Tensor) -> torch.Tensor:
-    """m = vee(S - S^T) = (S21 - S12, S02 - S20, S10 - S01) (paper Eq. 12)."""
-    return torch.stack(
-        [S[..., 2, 1] - S[..., 1, 2], S[..., 0, 2] - S[..., 2, 0], S[..., 1, 0] - S[..., 0, 1]], -1
-    )
-
-
-def _trace(S: torch.Tensor) -> torch.Tensor:
-    return S.diagonal(dim1=-2, dim2=-1).sum(-1)
-
-
 def _fraction_rotation(w, d):
-    """Eq. 10 for z = -w / d, multiplied through by d^2 (one division)."""
+    """Eq. 10 for z = -w / d, multiplied through by d^2 (one division). Not
+    torchrot.generic.cayley's _cayley_increment, which computes Q - I for the
+    fits (other roundings): cayley_rotation makes the test data
+    (torchrot.testing.data), whose bits stay as they were."""
     ww = (w * w).sum(-1)[..., None, None]
     dd = (d * d)[..., None, None]
     x, y, v = w.unbind(-1)
@@ -105,27 +107,15 @@ def cayley_rotation(z: torch.Tensor) -> torch.Tensor:
 
 
 def quaternion_rotation(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices of unit quaternions ``(..., 4)`` ordered (w, x, y, z)."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z,
-        ],
-        -1,
-    ).reshape(q.shape[:-1] + (3, 3))
+    """Rotation matrices of unit quaternions ``(..., 4)`` ordered (w, x, y, z)
+    (torchrot.generic.quaternion's entries, stacked)."""
+    return torch.stack(_quaternion_rotation(*q.unbind(-1)), -1).reshape(q.shape[:-1] + (3, 3))
 
 
 def horn_matrix(M: torch.Tensor) -> torch.Tensor:
-    """Horn's symmetric 4x4 K with tr(R(q)^T M) = q^T K q for unit q (w, x, y, z)."""
-    t = _trace(M)
-    m = _skew_vector(M)
-    eye = torch.eye(3, dtype=M.dtype, device=M.device)
-    T = M + M.mT - t[..., None, None] * eye
-    top = torch.cat([t[..., None], m], -1).unsqueeze(-2)
-    bottom = torch.cat([m.unsqueeze(-1), T], -1)
-    return torch.cat([top, bottom], -2)
+    """Horn's symmetric 4x4 K with tr(R(q)^T M) = q^T K q for unit q (w, x, y, z)
+    (torchrot.generic.quaternion's entries, stacked)."""
+    return torch.stack(_horn(list(M.flatten(-2).unbind(-1))), -1).reshape(M.shape[:-2] + (4, 4))
 
 
 def fit_rotation_reference(
@@ -171,8 +161,8 @@ def fit_rotation_backward_reference(
     u = (A^2 + lambda^2 I)^-1 A g, evaluated as Re (A + i lambda I)^-1 g by
     the 3x3 adjugate, as the CPU kernel (forming A^2 would square A's
     condition number: ~3 digits lost in float32), elementwise over the 9
-    entries (torchrot.generic.rotation_tangent). The map is self-adjoint, so
-    with ``grad = dM`` this returns the forward-mode tangent dR.
+    entries (torchrot.generic.rotation_gradient.rotation_tangent). The map is
+    self-adjoint, so with ``grad = dM`` this returns the forward-mode tangent dR.
 
     Convention: R (det +1) maximises tr(R^T M); M = sum_i w_i y_i x_i^T gives
     R x_i ~ y_i (column vectors).

@@ -80,6 +80,24 @@ TORCHROT_INLINE void prefetch_contiguous_block(const typename L::Scalar* block) 
   for (int line = 0; line < kBytes; line += 64) __builtin_prefetch(ahead + line, kWrite);
 }
 
+// The two tiles of half a block each that start at `ahead`: every cache
+// line of them where the tiles are dense (tile after tile, the nine entries
+// of a tile one after another, as the paper authors' blocks are), else each
+// entry of each tile.
+template <typename L, int kWrite>
+TORCHROT_INLINE void prefetch_tiles(const typename L::Scalar* data, const Layout& layout, int64_t ahead) {
+  if (layout.tile_stride == 9 * layout.tile && layout.stride[1] == 3 * layout.tile && layout.stride[2] == layout.tile) {
+    constexpr int kBytes = 9 * L::width * sizeof(typename L::Scalar);  // the two tiles
+    const char* lines = reinterpret_cast<const char*>(data + ahead);
+    for (int line = 0; line < kBytes; line += 64) __builtin_prefetch(lines + line, kWrite);
+    return;
+  }
+  for (int k = 0; k < 9; ++k) {
+    __builtin_prefetch(data + ahead + entry_offset(layout, k), kWrite);
+    __builtin_prefetch(data + ahead + layout.tile_stride + entry_offset(layout, k), kWrite);
+  }
+}
+
 // load_block and store_block of vector lanes through a buffer, element by
 // element: for any strides and for tail blocks. Out of line, so that the
 // vector paths of the callers keep their registers (measured: inlined, they
@@ -197,9 +215,18 @@ TORCHROT_INLINE SoaMove soa_move(const Layout& layout, int64_t first) {
 // the tail block on kAny (run_block_paths).
 enum class BlockPath {
   kTransposed,  // contiguous (N, 3, 3) layouts, full blocks: in-register transposition
-  kVectors,     // untiled structure of arrays (matrix stride 1), full blocks: plain vectors
+  kVectors,     // structure of arrays (matrix stride 1), untiled or in tiles that line up with
+                // the blocks (tiles_line_up), full blocks: plain vectors or vector halves
   kAny,         // any layout and count: tiled runs, gathers, tail blocks
 };
+
+// Whether the tiles of an SoA layout line up with blocks of `width`
+// matrices, which start at multiples of the width (parallel_blocks): a
+// whole number of blocks to a tile, or a tile to each half of a block (the
+// paper authors' tiles of 8 float matrices against AVX-512's 16 lanes).
+inline bool tiles_line_up(const Layout& layout, int width) {
+  return layout.tile == 0 || layout.tile % width == 0 || 2 * layout.tile == width;
+}
 
 // Whether a layout is contiguous (N, 3, 3).
 inline bool is_contiguous_batch(const Layout& layout) {
@@ -207,13 +234,14 @@ inline bool is_contiguous_batch(const Layout& layout) {
   return layout.tile == 0 && s[0] == 9 && s[1] == 3 && s[2] == 1;
 }
 
-// The path of the full blocks of a loop over these layouts (nulls skipped).
-inline BlockPath full_block_path(std::initializer_list<const Layout*> layouts) {
+// The path of the full blocks of width-`width` lanes of a loop over these
+// layouts (nulls skipped).
+inline BlockPath full_block_path(int width, std::initializer_list<const Layout*> layouts) {
   bool contiguous = true, vectors = true;
   for (const Layout* layout : layouts) {
     if (layout == nullptr) continue;
     contiguous = contiguous && is_contiguous_batch(*layout);
-    vectors = vectors && layout->tile == 0 && is_soa_batch(*layout);
+    vectors = vectors && is_soa_batch(*layout) && tiles_line_up(*layout, width);
   }
   return contiguous ? BlockPath::kTransposed : vectors ? BlockPath::kVectors : BlockPath::kAny;
 }
@@ -254,10 +282,20 @@ TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, c
     for (int k = 0; k < 9; ++k) A.a[k] = data[offset<kContiguous>(layout, first, k)];
     return A;
   } else if constexpr (kPath == BlockPath::kVectors) {
+    const int64_t at = matrix_offset(layout, first), ahead = matrix_offset(layout, first + kPrefetchBlocks * L::width);
+    if (2 * layout.tile == L::width) {  // each half of the block is a tile
+      prefetch_tiles<L, 0>(data, layout, ahead);
+      const int64_t hi = at + layout.tile_stride;
+      for (int k = 0; k < 9; ++k) {
+        const int64_t entry = entry_offset(layout, k);
+        A.a[k] = L::load_halves(data + at + entry, data + hi + entry);
+      }
+      return A;
+    }
     for (int k = 0; k < 9; ++k) {
-      const typename L::Scalar* entry = data + matrix_offset(layout, first) + entry_offset(layout, k);
-      __builtin_prefetch(entry + kPrefetchBlocks * L::width);
-      A.a[k] = L::load(entry);
+      const int64_t entry = entry_offset(layout, k);
+      __builtin_prefetch(data + ahead + entry);
+      A.a[k] = L::load(data + at + entry);
     }
     return A;
   } else if constexpr (kPath == BlockPath::kTransposed) {
@@ -307,10 +345,20 @@ TORCHROT_INLINE void store_block(const Mat3<typename L::V>& R, typename L::Scala
   } else if constexpr (L::width == 1) {
     for (int k = 0; k < 9; ++k) data[offset<kContiguous>(layout, first, k)] = R.a[k];
   } else if constexpr (kPath == BlockPath::kVectors) {
+    const int64_t at = matrix_offset(layout, first), ahead = matrix_offset(layout, first + kPrefetchBlocks * L::width);
+    if (2 * layout.tile == L::width) {
+      prefetch_tiles<L, 1>(data, layout, ahead);
+      const int64_t hi = at + layout.tile_stride;
+      for (int k = 0; k < 9; ++k) {
+        const int64_t entry = entry_offset(layout, k);
+        L::store_halves(R.a[k], data + at + entry, data + hi + entry);
+      }
+      return;
+    }
     for (int k = 0; k < 9; ++k) {
-      typename L::Scalar* entry = data + matrix_offset(layout, first) + entry_offset(layout, k);
-      __builtin_prefetch(entry + kPrefetchBlocks * L::width, 1);
-      L::store(R.a[k], entry);
+      const int64_t entry = entry_offset(layout, k);
+      __builtin_prefetch(data + ahead + entry, 1);
+      L::store(R.a[k], data + at + entry);
     }
   } else if constexpr (kPath == BlockPath::kTransposed) {
 #ifdef TORCHROT_HAVE_SIMD_TRANSPOSE

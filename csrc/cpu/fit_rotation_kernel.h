@@ -151,13 +151,14 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
       typename L::V objective;
       kernel::LaneState<L> s = kernel::begin_fit<L>(M, kCold ? nullptr : &R0, args.options.init_known_clean,
                                                     kCold ? &objective : nullptr);
+      typename L::Mask clean_up = L::all_true();
       if constexpr (kOneStep) {
-        kernel::advance_one_step<L>(s, args.options.variant, kCold ? &objective : nullptr);
+        clean_up = kernel::advance_one_step<L>(s, args.options.variant, kCold ? &objective : nullptr);
       } else {
         kernel::advance<L, kCold>(s, args.options, first_budget, kCold ? &objective : nullptr);
       }
       // Lanes still running get a provisional result, replaced in a later pass.
-      store_block<L, kPath>(kernel::finish<L>(s), args.out, args.out_layout, first, count);
+      store_block<L, kPath>(kernel::finish<L>(s, clean_up), args.out, args.out_layout, first, count);
       if (!kCold && L::any(s.bad_init)) {
         for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
       }
@@ -204,7 +205,7 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
 template <typename L>
 int64_t fit_batch(const BatchArgs<typename L::Scalar>& args) {
   const BlockPath path =
-      full_block_path({&args.m_layout, &args.out_layout, args.init == nullptr ? nullptr : &args.init_layout});
+      full_block_path(L::width, {&args.m_layout, &args.out_layout, args.init == nullptr ? nullptr : &args.init_layout});
   std::atomic<int64_t> bad_inits{0};
   // One instantiation per case, so that each loop is compiled for its own
   // (measured: warm one-step fits took 2.4 (AVX-512) and 4.1 (AVX2) more
@@ -234,7 +235,7 @@ template <typename L>
 WarmStartCount count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& args) {
   using T = typename L::Scalar;
   using V = typename L::V;
-  const BlockPath path = full_block_path({&args.layout});
+  const BlockPath path = full_block_path(L::width, {&args.layout});
   std::atomic<int64_t> bad{0}, unclean{0};
   parallel_blocks(args.n, L::width, kGrainSize, [&](int64_t begin, int64_t end) {
     int64_t local_bad = 0, local_unclean = 0;

@@ -36,7 +36,8 @@ void tangent_range(const TangentArgs<typename L::Scalar>& args, int64_t begin, i
 
 template <typename L>
 void tangent_batch(const TangentArgs<typename L::Scalar>& args) {
-  const BlockPath path = full_block_path({&args.x_layout, &args.r_layout, &args.m_layout, &args.out_layout});
+  const BlockPath path =
+      full_block_path(L::width, {&args.x_layout, &args.r_layout, &args.m_layout, &args.out_layout});
   parallel_blocks(args.n, L::width, kTangentGrainSize, [&](int64_t begin, int64_t end) {
     run_block_paths<L>(path, begin, end,
                        [&](auto block_path, int64_t b, int64_t e) { tangent_range<L, block_path.value>(args, b, e); });

@@ -13,7 +13,7 @@
 // flips. (Measured, cold converged fits, float32: Gaussian M 3.39 -> 3.15 mean
 // steps, 5.9% -> 2.2% of matrices needing 5 or more, against the 12
 // rotations of the tetrahedral group used before; uniform [0, 1] M 3.20 ->
-// 3.18.) torchrot/generic.py's _best_start_rotation mirrors this.
+// 3.18.) torchrot/generic/cold_start.py's _best_start_rotation mirrors this.
 #pragma once
 
 #include "lanes.h"

@@ -67,6 +67,9 @@ struct Tolerances {
   // Warm starts (limits.h) are used as they are below init_clean (and
   // accepted at all below limits::kInitTolerance, see check_warm_start).
   static constexpr T init_clean = T(limits::kInitCleanEps) * eps;
+  // One-step results are cleaned up where the step was at least this large
+  // (tan^2(theta / 2), see finish).
+  static constexpr T one_step_large = T(limits::kOneStepLargeStep);
 };
 
 template <typename L>
@@ -147,7 +150,7 @@ TORCHROT_INLINE LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<
 
 // Whether a lane can take `step`. A singular H (or a non-finite step) takes
 // no step; nor does a step whose d^2 + w.w is below the smallest normal
-// number: 1 / (d^2 + w.w) in cayley_rotation would overflow and make R Inf/NaN
+// number: 2 / (d^2 + w.w) in cayley_increment would overflow and make R Inf/NaN
 // (d and w have lost their precision by then anyway). Since |S| >= 1 after
 // normalisation, that means H is singular to working precision (a flat
 // objective).
@@ -169,7 +172,7 @@ TORCHROT_INLINE typename L::Mask take_step(LaneState<L>& s, const CayleyStep<typ
                                            typename L::Mask valid) {
   using V = typename L::V;
   const typename L::Mask stepping = L::mask_and(s.running, valid);
-  s.R = select<L>(stepping, times(s.R, cayley_rotation(step)), s.R);
+  s.R = select<L>(stepping, rotate_by(s.R, cayley_increment(step)), s.R);
   const V taken = L::select(stepping, V(1), V(0));
   s.iterations = s.iterations + taken;
   s.attempt_steps = s.attempt_steps + taken;
@@ -258,14 +261,19 @@ template <typename L, bool kFirstEstimate = false>
 // advance(s, options, 1, estimate) for max_iter = 1 (the paper's one-step warm start):
 // the same operations on the running lanes, so the same results bit for bit,
 // without the bookkeeping of the convergence decision. Inline, so that the
-// block's state stays in registers from begin_fit to finish.
+// block's state stays in registers from begin_fit to finish. Returns the
+// lanes whose step was large (Tolerances::one_step_large), the ones finish
+// cleans up.
 template <typename L>
-TORCHROT_INLINE void advance_one_step(LaneState<L>& s, Variant variant, const typename L::V* estimate = nullptr) {
+TORCHROT_INLINE typename L::Mask advance_one_step(LaneState<L>& s, Variant variant,
+                                                 const typename L::V* estimate = nullptr) {
+  using T = typename L::Scalar;
   using V = typename L::V;
   const Mat3<V> S = transpose_times(s.R, s.A);
   const CayleyStep<V> step = cayley_step(S, estimate != nullptr ? *estimate : objective_estimate<L>(S, variant));
-  take_step<L>(s, step, can_take<L>(step));
+  const typename L::Mask stepping = take_step<L>(s, step, can_take<L>(step));
   s.running = L::all_false();
+  return L::mask_and(stepping, L::mask_not(step.template smaller_than<L>(Tolerances<T>::one_step_large)));
 }
 
 // The fallback lanes of R, solved exactly (rare: out of line).
@@ -276,16 +284,27 @@ template <typename L>
   }
 }
 
-// The result of every lane that is not running. One Newton-Schulz step
-// squares the orthonormality error of the warm start (which may have drifted
-// over many calls that fed results back) and of the product of Cayley factors
-// (which accumulates rounding), so every result is a rotation at the dtype's
-// precision. Fallback lanes are solved exactly, unusable lanes are NaN.
+// The result of every lane that is not running. One Newton-Schulz step on
+// the lanes of `clean_up` squares the orthonormality error of the product of
+// Cayley factors (each step's rounding adds to it), so that every result of
+// several steps is a rotation at the dtype's precision. A one-step update
+// cleans up only its large steps (advance_one_step): a small step adds at
+// most ~1.4 eps to its warm start's deviation, which is below
+// Tolerances::init_clean (begin_fit cleans it up to there otherwise), so
+// its result is a rotation at working precision, and one fed back after its
+// deviation drifted past that threshold is cleaned before its next step
+// (limits::kInitCleanEps; tests/test_warm_start_precision.py chains 1,000
+// of them). Fallback lanes are solved exactly, unusable lanes are NaN.
 template <typename L>
-TORCHROT_INLINE Mat3<typename L::V> finish(const LaneState<L>& s) {
+TORCHROT_INLINE Mat3<typename L::V> finish(const LaneState<L>& s, typename L::Mask clean_up = L::all_true()) {
   using T = typename L::Scalar;
   using V = typename L::V;
-  Mat3<V> R = reorthonormalize(s.R);
+  Mat3<V> R = s.R;
+  if (L::all(clean_up)) {
+    R = reorthonormalize(R);
+  } else if (L::any(clean_up)) {
+    R = select<L>(clean_up, reorthonormalize(R), R);
+  }
   if (L::any(s.fallback)) solve_fallback_lanes<L>(s, R);
   const typename L::Mask nan_lanes = L::mask_or(s.non_finite, s.bad_init);
   if (L::any(nan_lanes)) {

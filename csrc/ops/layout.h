@@ -34,7 +34,7 @@ std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes
 // batch dimensions flatten to one of stride 1 and more than one matrix, its
 // leading ones (if any) to one stride, so that batch_view reads it in place.
 // The kernels load and store such tensors as plain vectors. (The fake
-// kernels' has_soa_layout, torchrot/_ops.py, decides the same.)
+// kernels' has_soa_layout, torchrot/_layout.py, decides the same.)
 bool has_soa_layout(const at::Tensor& t);
 
 // A new result of `t`'s shape: in t's layout where that is structure of

@@ -1,6 +1,7 @@
 // The operators of torch.ops.torchrot (TORCH_LIBRARY). Their kernels:
 // fit_rotation_cpu.cpp (CPU), ../autograd.cpp (Autograd, ADInplaceOrView),
-// torchrot/_ops.py (fake kernels, other devices) and torchrot/_autograd.py
+// torchrot/_fake.py and torchrot/_device_kernels.py (fake kernels, other
+// devices) and torchrot/_autograd.py
 // (the Python Autograd twins, vmap, autocast).
 #include <torch/library.h>
 
