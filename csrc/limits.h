@@ -47,19 +47,23 @@ constexpr double kInitTolerance = 5e-2;
 // (float32 rotations used as float64 warm starts below a former threshold of
 // 1e-7 gave errors up to 1.5e-6, against 2e-13 from a cold start). And it
 // bounds the drift of results fed back one step at a time, which are not
-// cleaned up themselves (kOneStepLargeStep): each such step adds at most
+// cleaned up themselves (kLargeStep): each such step adds at most
 // ~1.4 eps (measured, float32), so a chain of them stays within 5 + 1.4 eps
 // of orthonormality (plus an eps between the computed and the true
 // deviation), below the 1e-6 = 8.4 eps of float32's accuracy criterion.
 // 5 eps is above the computed deviation of a cleaned-up rotation (at most
 // 3.3 eps, measured on 20,000 fits per dtype).
 constexpr double kInitCleanEps = 5;
-// A one-step update (max_iter=1) cleans up its result with a Newton-Schulz
-// step only where the step was large, tan^2(theta / 2) >= this (theta ~
-// 28 degrees): there Q's rounding adds up to ~8 eps to R's deviation
-// (measured), below it at most ~1.4 (float32; ~2.3 float64), which the next
-// call's warm-start threshold (kInitCleanEps) absorbs.
-constexpr double kOneStepLargeStep = 0.0625;
+// A result is cleaned up with a Newton-Schulz step only where it took a
+// large step, tan^2(theta / 2) >= kLargeStep (theta ~ 28 degrees; a saddle
+// escape counts as one), or more than kStepsWithoutCleanUp steps: there Q's
+// rounding adds up to ~8 eps to R's deviation (measured), below it at most
+// ~1.4 (float32; ~2.3 float64) a step, which the next call's warm-start
+// threshold (kInitCleanEps) absorbs when the result is fed back. So the
+// one-step update and converged fits from warm starts, which take one or two
+// small steps, skip it.
+constexpr double kLargeStep = 0.0625;
+constexpr int kStepsWithoutCleanUp = 2;
 constexpr int kInitCleanSteps = 4;
 
 // A tiny step is the last only if undamped: its damping c - tr S is at most

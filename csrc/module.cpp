@@ -112,15 +112,15 @@ PyObject* constants(PyObject*, PyObject*) {
   const bool ok = set_item(dict, "FIT_STATUS", status_codes()) && set_item(dict, "MESSAGES", messages()) &&
                   set_item(dict, "VARIANTS", variant_names()) &&
                   set_item(dict, "DEFAULT_VARIANT", PyUnicode_FromString(TORCHROT_DEFAULT_VARIANT)) &&
-                  set_item(dict, "DTYPES", dtype_names()) &&
-                  set_item(dict, "CPU_KERNELS", cpu_kernel_names()) &&
+                  set_item(dict, "DTYPES", dtype_names()) && set_item(dict, "CPU_KERNELS", cpu_kernel_names()) &&
                   set_item(dict, "DEFAULT_GRADIENT_EPS", PyFloat_FromDouble(kDefaultGradientEps)) &&
                   set_item(dict, "MAX_GRADIENT_EPS", PyFloat_FromDouble(kMaxGradientEps)) &&
                   set_item(dict, "MAX_ITER", PyLong_FromLongLong(kMaxIter)) &&
                   set_item(dict, "INIT_TOLERANCE", PyFloat_FromDouble(kInitTolerance)) &&
                   set_item(dict, "INIT_CLEAN_EPS", PyFloat_FromDouble(kInitCleanEps)) &&
                   set_item(dict, "INIT_CLEAN_STEPS", PyLong_FromLong(kInitCleanSteps)) &&
-                  set_item(dict, "ONE_STEP_LARGE_STEP", PyFloat_FromDouble(kOneStepLargeStep)) &&
+                  set_item(dict, "LARGE_STEP", PyFloat_FromDouble(kLargeStep)) &&
+                  set_item(dict, "STEPS_WITHOUT_CLEAN_UP", PyLong_FromLong(kStepsWithoutCleanUp)) &&
                   set_item(dict, "UNDAMPED_FLOAT", PyFloat_FromDouble(kUndampedFloat)) &&
                   set_item(dict, "UNDAMPED_DOUBLE", PyFloat_FromDouble(kUndampedDouble)) &&
                   set_item(dict, "OBJECTIVE_LAGUERRE_STEPS", PyLong_FromLong(kObjectiveLaguerreSteps)) &&
@@ -153,7 +153,8 @@ PyObject* fit_rotation_eager(PyObject*, PyObject* const* args, Py_ssize_t nargs)
   HANDLE_TH_ERRORS
   if (nargs != 6 || !THPVariable_CheckExact(args[0]) || (args[1] != Py_None && !THPVariable_CheckExact(args[1])) ||
       (args[2] != Py_None && !PyLong_CheckExact(args[2])) || !PyUnicode_Check(args[3]) ||
-      (args[5] != Py_None && !THPVariable_CheckExact(args[5])) || torchrot::torch_internals::torch_function_mode_enabled()) {
+      (args[5] != Py_None && !THPVariable_CheckExact(args[5])) ||
+      torchrot::torch_internals::torch_function_mode_enabled()) {
     Py_RETURN_NOTIMPLEMENTED;
   }
   std::optional<int64_t> max_iter;

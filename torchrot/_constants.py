@@ -18,8 +18,8 @@ from torchrot import _C
 __all__ = [
     "CONVERGED_CAP", "CPU_KERNELS", "DEFAULT_VARIANT", "ESTIMATE_SWITCH", "FitStatus", "GERSHGORIN_STEPS",
     "GRADIENT_EPS", "INIT_CLEAN", "INIT_CLEAN_EPS", "INIT_CLEAN_STEPS", "INIT_TOLERANCE", "MAX_CHECK_SLACK_EPS",
-    "MAX_ESCAPES", "MAX_GRADIENT_EPS", "MAX_ITER", "MESSAGES", "OBJECTIVE_LAGUERRE_STEPS", "ONE_STEP_LARGE_STEP",
-    "SUPPORTED_DTYPES",
+    "LARGE_STEP", "MAX_ESCAPES", "MAX_GRADIENT_EPS", "MAX_ITER", "MESSAGES", "OBJECTIVE_LAGUERRE_STEPS",
+    "STEPS_WITHOUT_CLEAN_UP", "SUPPORTED_DTYPES",
     "UNDAMPED", "VARIANTS",
 ]
 
@@ -35,6 +35,14 @@ FitStatus.__doc__ = """Per-matrix outcome of a fit, as :func:`torchrot.fit_rotat
 - ``BAD_INIT``: the warm start was finite but not a rotation (the call raises,
   but for traced and ``meta`` calls, where R is NaN);
 - ``NON_FINITE``: M or init held NaN/Inf; R is NaN.
+
+Examples:
+    >>> M = torch.stack([torch.eye(3), torch.full((3, 3), float("inf"))])
+    >>> status = torchrot.fit_rotation_info(M).status
+    >>> status == torchrot.FitStatus.NON_FINITE
+    tensor([False,  True])
+    >>> [torchrot.FitStatus(code).name for code in status.tolist()]
+    ['CAYLEY', 'NON_FINITE']
 """
 
 #: Every error message of the operators, by key, with its static fields
@@ -62,9 +70,10 @@ INIT_TOLERANCE: float = _CONSTANTS["INIT_TOLERANCE"]
 INIT_CLEAN_EPS: float = _CONSTANTS["INIT_CLEAN_EPS"]
 INIT_CLEAN: dict = {name: INIT_CLEAN_EPS * torch.finfo(getattr(torch, name)).eps for name in ("float32", "float64")}
 INIT_CLEAN_STEPS: int = _CONSTANTS["INIT_CLEAN_STEPS"]
-#: A one-step update cleans up its result where its step was at least this
-#: large (tan^2(theta / 2)); smaller steps stay within a few eps.
-ONE_STEP_LARGE_STEP: float = _CONSTANTS["ONE_STEP_LARGE_STEP"]
+#: A result is cleaned up (a Newton-Schulz step) where a step was at least this
+#: large (tan^2(theta / 2)) or it took more than STEPS_WITHOUT_CLEAN_UP steps.
+LARGE_STEP: float = _CONSTANTS["LARGE_STEP"]
+STEPS_WITHOUT_CLEAN_UP: int = _CONSTANTS["STEPS_WITHOUT_CLEAN_UP"]
 #: A step is the last only if undamped: c - tr S <= UNDAMPED |tr S| (sqrt(eps),
 #: float32 / float64 compute).
 UNDAMPED: dict = {"float32": _CONSTANTS["UNDAMPED_FLOAT"], "float64": _CONSTANTS["UNDAMPED_DOUBLE"]}

@@ -45,7 +45,7 @@ struct SavedLane {
   int64_t index;
   T A[9], R[9];
   T iterations, attempt_steps, escapes;
-  bool switched;
+  bool switched, large_step;
 };
 
 // Saves the lanes of `s` that are still running (of the first `count`),
@@ -74,6 +74,7 @@ inline void save_running_lanes(const kernel::LaneState<L>& s, int count, const i
     lane.attempt_steps = attempt[j];
     lane.escapes = escapes[j];
     lane.switched = L::lane_set(s.switched, j);
+    lane.large_step = L::lane_set(s.large_step, j);
     saved.push_back(lane);
   }
 }
@@ -82,8 +83,8 @@ inline void save_running_lanes(const kernel::LaneState<L>& s, int count, const i
 template <typename L>
 inline kernel::LaneState<L> restore_block(const SavedLane<typename L::Scalar>* saved, int count) {
   using T = typename L::Scalar;
-  alignas(64) T A[9][L::width], R[9][L::width], iterations[L::width], attempt[L::width],
-      escapes[L::width], switched[L::width], running[L::width];
+  alignas(64) T A[9][L::width], R[9][L::width], iterations[L::width], attempt[L::width], escapes[L::width],
+      switched[L::width], large_step[L::width], running[L::width];
   for (int j = 0; j < L::width; ++j) {
     const bool live = j < count;
     for (int k = 0; k < 9; ++k) {
@@ -94,6 +95,7 @@ inline kernel::LaneState<L> restore_block(const SavedLane<typename L::Scalar>* s
     attempt[j] = live ? saved[j].attempt_steps : T(0);
     escapes[j] = live ? saved[j].escapes : T(0);
     switched[j] = live && saved[j].switched ? T(1) : T(0);
+    large_step[j] = live && saved[j].large_step ? T(1) : T(0);
     running[j] = live ? T(1) : T(0);
   }
   kernel::LaneState<L> s;
@@ -106,6 +108,7 @@ inline kernel::LaneState<L> restore_block(const SavedLane<typename L::Scalar>* s
   s.attempt_steps = L::load(attempt);
   s.escapes = L::load(escapes);
   s.switched = L::gt(L::load(switched), zero);
+  s.large_step = L::gt(L::load(large_step), zero);
   s.running = L::gt(L::load(running), zero);
   s.fallback = s.bad_init = s.non_finite = L::all_false();
   return s;
@@ -149,16 +152,15 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
       if constexpr (!kCold) R0 = load_block<L, kPath>(args.init, args.init_layout, first, count);
       // Cold starts' first step takes the maximal objective as its estimate.
       typename L::V objective;
-      kernel::LaneState<L> s = kernel::begin_fit<L>(M, kCold ? nullptr : &R0, args.options.init_known_clean,
-                                                    kCold ? &objective : nullptr);
-      typename L::Mask clean_up = L::all_true();
+      kernel::LaneState<L> s =
+          kernel::begin_fit<L>(M, kCold ? nullptr : &R0, args.options.init_known_clean, kCold ? &objective : nullptr);
       if constexpr (kOneStep) {
-        clean_up = kernel::advance_one_step<L>(s, args.options.variant, kCold ? &objective : nullptr);
+        kernel::advance_one_step<L>(s, args.options.variant, kCold ? &objective : nullptr);
       } else {
         kernel::advance<L, kCold>(s, args.options, first_budget, kCold ? &objective : nullptr);
       }
       // Lanes still running get a provisional result, replaced in a later pass.
-      store_block<L, kPath>(kernel::finish<L>(s, clean_up), args.out, args.out_layout, first, count);
+      store_block<L, kPath>(kernel::finish<L>(s), args.out, args.out_layout, first, count);
       if (!kCold && L::any(s.bad_init)) {
         for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
       }

@@ -67,25 +67,27 @@ struct Tolerances {
   // Warm starts (limits.h) are used as they are below init_clean (and
   // accepted at all below limits::kInitTolerance, see check_warm_start).
   static constexpr T init_clean = T(limits::kInitCleanEps) * eps;
-  // One-step results are cleaned up where the step was at least this large
-  // (tan^2(theta / 2), see finish).
-  static constexpr T one_step_large = T(limits::kOneStepLargeStep);
+  // A result is cleaned up where a step was at least this large
+  // (tan^2(theta / 2)) or it took more than steps_without_clean_up (finish).
+  static constexpr T large_step = T(limits::kLargeStep);
+  static constexpr int steps_without_clean_up = limits::kStepsWithoutCleanUp;
 };
 
 template <typename L>
 struct LaneState {
   using V = typename L::V;
   using Mask = typename L::Mask;
-  Mat3<V> A;         // M scaled to max |entry| 1
-  Mat3<V> R;         // the current rotation
-  V iterations;      // Cayley steps taken
-  V attempt_steps;   // steps since the start or the last saddle escape
-  V escapes;         // saddle escapes taken
-  Mask switched;     // converged mode: Gershgorin switched to the conservative estimate
-  Mask running;      // still iterating
-  Mask fallback;     // converged mode: needs the Horn/Jacobi fallback
-  Mask bad_init;     // the warm start was finite but not a rotation
-  Mask non_finite;   // M or init held NaN/Inf
+  Mat3<V> A;        // M scaled to max |entry| 1
+  Mat3<V> R;        // the current rotation
+  V iterations;     // Cayley steps taken
+  V attempt_steps;  // steps since the start or the last saddle escape
+  V escapes;        // saddle escapes taken
+  Mask switched;    // converged mode: Gershgorin switched to the conservative estimate
+  Mask running;     // still iterating
+  Mask fallback;    // converged mode: needs the Horn/Jacobi fallback
+  Mask bad_init;    // the warm start was finite but not a rotation
+  Mask non_finite;  // M or init held NaN/Inf
+  Mask large_step;  // took a large step or a saddle escape: finish cleans it up
 };
 
 // Normalises M and picks the start: init (brought to the compute precision,
@@ -105,7 +107,7 @@ TORCHROT_INLINE LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<
   using Mask = typename L::Mask;
   LaneState<L> s;
   s.iterations = s.attempt_steps = s.escapes = V(0);
-  s.switched = s.fallback = s.bad_init = L::all_false();
+  s.switched = s.fallback = s.bad_init = s.large_step = L::all_false();
 
   const V max_abs = max_abs_entry<L>(M);  // NaN if any entry is NaN
   Mask finite = L::is_finite(max_abs);
@@ -164,15 +166,19 @@ TORCHROT_INLINE typename L::Mask can_take(const CayleyStep<typename L::V>& step)
 }
 
 // Applies `step` to the running lanes that can take it (`valid`, see
-// can_take) and counts it (iterations, attempt_steps); returns those lanes.
+// can_take), counts it (iterations, attempt_steps) and notes a large one
+// (LaneState::large_step); returns those lanes.
 // advance and advance_one_step both step through it, so their steps are the
 // same bit for bit.
 template <typename L>
 TORCHROT_INLINE typename L::Mask take_step(LaneState<L>& s, const CayleyStep<typename L::V>& step,
                                            typename L::Mask valid) {
   using V = typename L::V;
+  using T = typename L::Scalar;
   const typename L::Mask stepping = L::mask_and(s.running, valid);
   s.R = select<L>(stepping, rotate_by(s.R, cayley_increment(step)), s.R);
+  const typename L::Mask large = L::mask_not(step.template smaller_than<L>(Tolerances<T>::large_step));
+  s.large_step = L::mask_or(s.large_step, L::mask_and(stepping, large));
   const V taken = L::select(stepping, V(1), V(0));
   s.iterations = s.iterations + taken;
   s.attempt_steps = s.attempt_steps + taken;
@@ -240,6 +246,7 @@ template <typename L, bool kFirstEstimate = false>
         s.fallback = L::mask_or(s.fallback, L::mask_and(saddle, L::mask_not(escape)));
         if (L::any(escape)) {
           s.R = select<L>(escape, times(s.R, saddle_escape_rotation<L>(transpose_times(s.R, s.A))), s.R);
+          s.large_step = L::mask_or(s.large_step, escape);
           s.escapes = s.escapes + L::select(escape, one, zero);
           s.attempt_steps = L::select(escape, zero, s.attempt_steps);
           s.switched = L::mask_and(s.switched, L::mask_not(escape));
@@ -247,8 +254,8 @@ template <typename L, bool kFirstEstimate = false>
         }
       }
       // Not converged within the cap, or stalled: the fallback decides.
-      const Mask exhausted = L::mask_and(L::mask_and(stepping, L::mask_not(finished)),
-                                         L::mask_not(L::lt(s.attempt_steps, cap)));
+      const Mask exhausted =
+          L::mask_and(L::mask_and(stepping, L::mask_not(finished)), L::mask_not(L::lt(s.attempt_steps, cap)));
       s.fallback = L::mask_or(s.fallback, L::mask_or(exhausted, stalled));
       finished = L::mask_or(finished, L::mask_or(exhausted, stalled));
     } else {
@@ -261,19 +268,14 @@ template <typename L, bool kFirstEstimate = false>
 // advance(s, options, 1, estimate) for max_iter = 1 (the paper's one-step warm start):
 // the same operations on the running lanes, so the same results bit for bit,
 // without the bookkeeping of the convergence decision. Inline, so that the
-// block's state stays in registers from begin_fit to finish. Returns the
-// lanes whose step was large (Tolerances::one_step_large), the ones finish
-// cleans up.
+// block's state stays in registers from begin_fit to finish.
 template <typename L>
-TORCHROT_INLINE typename L::Mask advance_one_step(LaneState<L>& s, Variant variant,
-                                                 const typename L::V* estimate = nullptr) {
-  using T = typename L::Scalar;
+TORCHROT_INLINE void advance_one_step(LaneState<L>& s, Variant variant, const typename L::V* estimate = nullptr) {
   using V = typename L::V;
   const Mat3<V> S = transpose_times(s.R, s.A);
   const CayleyStep<V> step = cayley_step(S, estimate != nullptr ? *estimate : objective_estimate<L>(S, variant));
-  const typename L::Mask stepping = take_step<L>(s, step, can_take<L>(step));
+  take_step<L>(s, step, can_take<L>(step));
   s.running = L::all_false();
-  return L::mask_and(stepping, L::mask_not(step.template smaller_than<L>(Tolerances<T>::one_step_large)));
 }
 
 // The fallback lanes of R, solved exactly (rare: out of line).
@@ -284,21 +286,24 @@ template <typename L>
   }
 }
 
-// The result of every lane that is not running. One Newton-Schulz step on
-// the lanes of `clean_up` squares the orthonormality error of the product of
-// Cayley factors (each step's rounding adds to it), so that every result of
-// several steps is a rotation at the dtype's precision. A one-step update
-// cleans up only its large steps (advance_one_step): a small step adds at
-// most ~1.4 eps to its warm start's deviation, which is below
-// Tolerances::init_clean (begin_fit cleans it up to there otherwise), so
-// its result is a rotation at working precision, and one fed back after its
+// The result of every lane that is not running. One Newton-Schulz step
+// squares the orthonormality error that the product of Cayley factors
+// accumulates (each step's rounding adds to it), on the lanes that need it:
+// those that took a large step or a saddle escape, or more than
+// Tolerances::steps_without_clean_up steps. A small step adds at most ~1.4
+// eps to its warm start's deviation, which is below Tolerances::init_clean
+// (begin_fit cleans it up to there otherwise), so the results of one or two
+// of them (the one-step update, converged fits from warm starts) are
+// rotations at working precision as they are; one fed back after its
 // deviation drifted past that threshold is cleaned before its next step
 // (limits::kInitCleanEps; tests/test_warm_start_precision.py chains 1,000
-// of them). Fallback lanes are solved exactly, unusable lanes are NaN.
+// one-step updates). Fallback lanes are solved exactly, unusable lanes are NaN.
 template <typename L>
-TORCHROT_INLINE Mat3<typename L::V> finish(const LaneState<L>& s, typename L::Mask clean_up = L::all_true()) {
+TORCHROT_INLINE Mat3<typename L::V> finish(const LaneState<L>& s) {
   using T = typename L::Scalar;
   using V = typename L::V;
+  const typename L::Mask clean_up =
+      L::mask_or(s.large_step, L::mask_not(L::lt(s.iterations, V(T(Tolerances<T>::steps_without_clean_up + 1)))));
   Mat3<V> R = s.R;
   if (L::all(clean_up)) {
     R = reorthonormalize(R);

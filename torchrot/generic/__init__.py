@@ -63,7 +63,14 @@ Speed: benchmarks/generic_path.py.
 # ruff: noqa: F401
 from __future__ import annotations
 
-from torchrot.generic.cayley import _cayley_increment, _cayley_step, _objective_estimate, _rotate_by, _skew_vector, _trace
+from torchrot.generic.cayley import (
+    _cayley_increment,
+    _cayley_step,
+    _objective_estimate,
+    _rotate_by,
+    _skew_vector,
+    _trace,
+)
 from torchrot.generic.cold_start import _START_PERMS, _best_start_rotation
 from torchrot.generic.control_flow import (
     _INT,

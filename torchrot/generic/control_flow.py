@@ -27,7 +27,7 @@ __all__ = ["_INT", "_LANE_KEYS", "UNROLL_MAX_STEPS", "_compiling", "_any", "_mas
 _INT = torch.int32
 
 #: The lane state's per-lane entries besides ``A`` and ``R``, in the order loops carry them.
-_LANE_KEYS = ("running", "fallback", "switched", "iterations", "attempt", "escapes", "pending")
+_LANE_KEYS = ("running", "fallback", "switched", "iterations", "attempt", "escapes", "pending", "large")
 
 #: Compiled, loops of at most this many steps are unrolled (the one-step warm start).
 UNROLL_MAX_STEPS = 2
@@ -75,6 +75,8 @@ def _repeat(step, st, steps, unroll=True):
             if not _any(st["running"]):
                 break
             st = step(st)
+            if st["running"].device.type == "meta":  # one step gives the shapes and dtypes of all
+                break
         return st
     if unroll and steps <= UNROLL_MAX_STEPS:
         # A short fixed loop fuses into one kernel (finished lanes' steps are no-ops).

@@ -19,19 +19,27 @@ import torch
 from torchrot._constants import (
     ESTIMATE_SWITCH,
     GERSHGORIN_STEPS,
+    LARGE_STEP,
     MAX_CHECK_SLACK_EPS,
     MAX_ESCAPES,
-    ONE_STEP_LARGE_STEP,
+    STEPS_WITHOUT_CLEAN_UP,
     UNDAMPED,
 )
-from torchrot.generic.cayley import _cayley_increment, _cayley_step, _objective_estimate, _rotate_by, _skew_vector, _trace
+from torchrot.generic.cayley import (
+    _cayley_increment,
+    _cayley_step,
+    _objective_estimate,
+    _rotate_by,
+    _skew_vector,
+    _trace,
+)
 from torchrot.generic.control_flow import _INT, _any, _compiling, _masked_update, _repeat
 from torchrot.generic.horn_fallback import _horn_rotation
-from torchrot.generic.mat3 import _mul, _reorthonormalize, _tmul
+from torchrot.generic.mat3 import _mul, _reorthonormalize, _tmul, _where
 from torchrot.generic.optimality import _is_maximum
 from torchrot.generic.saddle_escape import _saddle_escape_rotation
 
-__all__ = ["_dtype_name", "_normalized", "_step", "_apply_pending_escapes", "_advance_and_finish"]
+__all__ = ["_dtype_name", "_normalized", "_step", "_apply_pending_escapes", "_advance_and_finish", "_cleaned_up"]
 
 
 def _dtype_name(dtype: torch.dtype) -> str:
@@ -86,7 +94,7 @@ def _step(st, variant, converge, cap, eps, objective=None):
     safe_w = [torch.where(stepping, x, 0.0) for x in w]
     # Lanes not stepping get K = 0 exactly (w = 0, d = 1): R + R K = R, no select needed.
     R = _rotate_by(R, _cayley_increment(safe_w, safe_d, torch.where(stepping, ww, 0.0), safe_dd))
-    large = stepping & ~(ww < ONE_STEP_LARGE_STEP * dd)  # advance_one_step's: the one-step update cleans these up
+    large = st["large"] | (stepping & ~(ww < LARGE_STEP * dd))  # take_step's LaneState::large_step
     step_i = stepping.to(_INT)
     iterations = iterations + step_i
     attempt = attempt + step_i
@@ -120,9 +128,16 @@ def _apply_pending_escapes(st):
     R = _masked_update(pending,
                        lambda *RA: _mul(list(RA[:9]), _saddle_escape_rotation(_tmul(list(RA[:9]), list(RA[9:])))),
                        st["R"], (*st["R"], *st["A"]))
-    return dict(st, R=R, running=st["running"] | pending, pending=pending & False,
+    return dict(st, R=R, running=st["running"] | pending, pending=pending & False, large=st["large"] | pending,
                 escapes=st["escapes"] + pending.to(_INT), attempt=torch.where(pending, 0, st["attempt"]),
                 switched=st["switched"] & ~pending)
+
+
+def _cleaned_up(st):
+    """finish()'s Newton-Schulz step, on the lanes that took a large step or
+    a saddle escape, or more than STEPS_WITHOUT_CLEAN_UP steps."""
+    clean_up = st["large"] | (st["iterations"] > STEPS_WITHOUT_CLEAN_UP)
+    return _where(clean_up, _reorthonormalize(st["R"]), st["R"])
 
 
 def _advance_and_finish(st, steps, variant, converge, cap, eps):
@@ -131,7 +146,7 @@ def _advance_and_finish(st, steps, variant, converge, cap, eps):
     the Horn fallback. Returns (R, final state)."""
     st = _apply_pending_escapes(st)
     st = _repeat(lambda s: _apply_pending_escapes(_step(s, variant, converge, cap, eps)), st, steps)
-    R = _reorthonormalize(st["R"])
+    R = _cleaned_up(st)
     if converge:
         R = _masked_update(st["fallback"], lambda *A: _horn_rotation(list(A)), R, st["A"])
     return R, st

@@ -25,8 +25,8 @@ import torch
 
 from torchrot._constants import CONVERGED_CAP, MAX_ESCAPES
 from torchrot.generic.control_flow import _INT, _LANE_KEYS, _any, _compiling, _repeat
-from torchrot.generic.fit_rotation_impl import _advance_and_finish, _step
-from torchrot.generic.mat3 import _reorthonormalize, _where
+from torchrot.generic.fit_rotation_impl import _advance_and_finish, _cleaned_up, _step
+from torchrot.generic.mat3 import _where
 
 __all__ = [
     "FULL_STEPS",
@@ -143,9 +143,7 @@ def fit_soa(A, R, running, variant, max_iter, eps, objective=None):
                  unroll=not cold)
     rest = budget - full
     capacity = straggler_capacity(n) if n > 0 else 0
-    if max_iter == 1:  # the one-step update cleans up its large steps only (finish, fit_rotation_impl.h)
-        return _where(st["large"], _reorthonormalize(st["R"]), st["R"]), st["iterations"], st["fallback"]
-    R = _reorthonormalize(st["R"])
+    R = _cleaned_up(st)
     if capacity == 0 or (rest == 0 and not converge):
         return R, st["iterations"], st["fallback"]
     sel = st["running"] | st["fallback"] | st["pending"]
