@@ -17,13 +17,21 @@ _C = load_extension()  # registers torch.ops.torchrot.*; ImportError if built fo
 torch.ops.torchrot.cpu_kernel()
 # The operators' kernels registered in Python: derivatives (Autograd, vmap,
 # autocast), fake kernels, and the kernels of devices without a native one.
-from torchrot import _autograd, _device_kernels, _fake  # noqa: E402, F401
-from torchrot._constants import GRADIENT_EPS as DEFAULT_GRADIENT_EPS  # noqa: E402
+# (I001: nn, the public submodule, is imported last, after what it wraps.)
+from torchrot import _autograd, _constants, _device_kernels, _fake  # noqa: E402, F401, I001
 from torchrot._constants import FitStatus  # noqa: E402
 from torchrot.fitting import FitInfo, fit_rotation, fit_rotation_info  # noqa: E402
 from torchrot.reference import fit_rotation_reference, rotation_svd  # noqa: E402
 from torchrot.registration import RigidTransform, rigid_registration  # noqa: E402
 from torchrot import nn  # noqa: E402
+
+# An assignment, not an import, so that the documentation reads the comment
+# (autodoc finds "#:" comments on assignments in the module it documents).
+#: The default ``gradient_eps`` of :func:`torchrot.fit_rotation`, of
+#: :class:`torchrot.nn.RotationFit` (``gradient_eps=None``) and of the operator
+#: schemas, a float: the derivative's damping is ``lambda = gradient_eps |M|_F``
+#: (see :doc:`derivative`). Read from the extension (csrc/limits.h).
+DEFAULT_GRADIENT_EPS: float = _constants.GRADIENT_EPS
 
 __all__ = [
     "DEFAULT_GRADIENT_EPS",

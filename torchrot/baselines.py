@@ -17,15 +17,32 @@ __all__ = ["rotation_svd", "roma_special_procrustes", "igl_fit_rotations", "avai
 
 
 def available(module: str) -> bool:
-    """Whether an optional package (``"roma"``, ``"igl"``) is installed."""
+    """Whether an optional package (``"roma"``, ``"igl"``) is installed.
+
+    Examples:
+        >>> from torchrot import baselines
+        >>> baselines.available("torch"), baselines.available("no_such_package")
+        (True, False)
+    """
     return importlib.util.find_spec(module) is not None
 
 
 def roma_special_procrustes(M: torch.Tensor) -> torch.Tensor:
     """RoMa's ``special_procrustes`` (SVD based): ``(..., 3, 3)`` -> rotations.
 
-    Requires the ``roma`` package. Same convention as torchrot (RoMa returns
-    the rotation closest to M).
+    Requires the ``roma`` package (ImportError without it). Same convention
+    as torchrot (RoMa returns the rotation closest to M); M's dtype and
+    device.
+
+    Examples:
+        >>> from torchrot import baselines
+        >>> M = torch.randn(4, 3, 3, dtype=torch.float64)
+        >>> if baselines.available("roma"):
+        ...     R = baselines.roma_special_procrustes(M)
+        ... else:  # (without RoMa, the SVD answer it computes)
+        ...     R = torchrot.rotation_svd(M)
+        >>> torch.allclose(R, torchrot.fit_rotation(M))
+        True
     """
     import roma
 
@@ -38,7 +55,27 @@ def igl_fit_rotations(M: torch.Tensor, single_precision: bool = False) -> torch.
     Requires the ``libigl`` package. libigl takes a float64 (3n, 3) NumPy stack
     interleaved by row (row i of matrix r at row i n + r) and returns each
     rotation transposed (it maximises tr(R M)); both conversions are part of
-    the call, as they would be for a PyTorch user. Returns M's dtype.
+    the call, as they would be for a PyTorch user.
+
+    Args:
+        M: ``(..., 3, 3)`` on any device (copied to the CPU; not differentiable).
+        single_precision: libigl's float32 path.
+
+    Returns:
+        ``(..., 3, 3)`` rotations in M's dtype, on the CPU.
+
+    Raises:
+        ImportError: libigl is not installed.
+
+    Examples:
+        >>> from torchrot import baselines
+        >>> M = torch.randn(4, 3, 3, dtype=torch.float64)
+        >>> if baselines.available("igl"):
+        ...     R = baselines.igl_fit_rotations(M)
+        ... else:  # (without libigl, the SVD answer it computes)
+        ...     R = torchrot.rotation_svd(M)
+        >>> torch.allclose(R, torchrot.fit_rotation(M))
+        True
     """
     import igl
 

@@ -39,13 +39,19 @@ _EAGER_DTYPES = (torch.float32, torch.float64)
 
 
 class FitInfo(NamedTuple):
-    """Result of :func:`fit_rotation_info`.
+    """Result of :func:`fit_rotation_info`: the fitted rotations and per-matrix diagnostics.
 
-    R: ``(..., 3, 3)`` the fitted rotations.
-    iterations: ``(...)`` int32, Cayley steps taken per matrix.
-    status: ``(...)`` uint8 per matrix, a :class:`torchrot.FitStatus` code
-        (CAYLEY, FALLBACK: the Horn/Jacobi fallback in converged mode,
-        NON_FINITE: M or init held NaN/Inf and R is NaN).
+    Attributes:
+        R: ``(..., 3, 3)`` the fitted rotations (det +1), in M's dtype.
+        iterations: ``(...)`` int32, the Cayley steps each matrix took.
+        status: ``(...)`` uint8, a :class:`torchrot.FitStatus` code per matrix
+            (``CAYLEY``; ``FALLBACK``: the Horn/Jacobi fallback of converged
+            mode took over; ``NON_FINITE``: M or init held NaN/Inf and R is NaN).
+
+    Examples:
+        >>> info = torchrot.fit_rotation_info(torch.randn(2, 5, 3, 3))
+        >>> info.R.shape, info.iterations.shape, info.iterations.dtype, info.status.dtype
+        (torch.Size([2, 5, 3, 3]), torch.Size([2, 5]), torch.int32, torch.uint8)
     """
 
     R: torch.Tensor
@@ -75,7 +81,7 @@ def fit_rotation(
         init: optional ``(..., 3, 3)`` rotations broadcastable to M, on M's
             device, of any float dtype (cast to M's): the warm start R0 (e.g.
             the previous iteration's R). Rotations rounded to any float dtype
-            are accepted (|R^T R - I|_F < 0.05, det > 0) and brought to the
+            are accepted (``|R^T R - I|_F < 0.05``, det > 0) and brought to the
             compute dtype's precision by Newton-Schulz steps, so results fed
             back call after call, or across precisions, do not drift. Without
             init, the fit starts from the best of the 24 rotations of the cube
@@ -87,23 +93,24 @@ def fit_rotation(
         max_iter: ``None`` (default) iterates each matrix to convergence at its
             dtype's precision and guarantees the maximum (a Horn/Jacobi
             fallback takes over matrices that do not converge within 12 steps
-            or stop at a saddle point). ``k >= 1`` takes at most k Cayley steps
-            with the chosen variant and no fallback: ``max_iter=1`` with
-            ``init`` is the paper's one-step warm start for local-global
-            solvers. The result is always an exact rotation.
+            or stop at a saddle point). ``k >= 1`` (at most 1000) takes at most
+            k Cayley steps with the chosen variant and no fallback:
+            ``max_iter=1`` with ``init`` is the paper's one-step warm start for
+            local-global solvers. The result is always an exact rotation.
         variant: how each step (but a cold start's first) estimates the
             maximal objective c (paper Sec. 4.2): ``"newton"`` (c = tr M),
-            ``"conservative"`` (c = sqrt(tr(M)^2 + m^T m)) or ``"gershgorin"``
-            (Eqs. 27-28). With ``max_iter=None``, Gershgorin hands over to
-            the conservative estimate after two steps (its slack makes
-            convergence linear).
+            ``"conservative"`` (the default; c = sqrt(tr(M)^2 + m^T m)) or
+            ``"gershgorin"`` (Eqs. 27-28). With ``max_iter=None``, Gershgorin
+            hands over to the conservative estimate after two steps (its slack
+            makes convergence linear).
         gradient_eps: damping of the derivative (autograd, forward mode,
             torch.func): the optimality system (tr(S) I - S) u = g is solved
-            as (A^2 + lambda^2 I)^-1 A g with lambda = gradient_eps |M|_F. The
-            exact derivative up to a relative (lambda / (sigma_i + sigma_j))^2
-            where it exists; bounded (|u| <= |g| / (2 lambda)) where R is not
-            unique (rank-deficient M, rotations by pi). ``0``: undamped.
-            ``None`` (the default): ``torchrot.DEFAULT_GRADIENT_EPS``.
+            as (A^2 + lambda^2 I)^-1 A g with ``lambda = gradient_eps |M|_F``.
+            The exact derivative up to a relative (lambda / (sigma_i +
+            sigma_j))^2 where it exists; bounded (``|u| <= |g| / (2 lambda)``)
+            where R is not unique (rank-deficient M, rotations by pi). A float
+            from 0 (undamped) to 1000; ``None`` (the default):
+            :data:`torchrot.DEFAULT_GRADIENT_EPS`.
         out: optional tensor of M's shape, dtype and device to write into; it
             may be ``init`` or ``M`` itself (an in-place warm-start update).
             Written as torch's out= operators write: its version counter is
@@ -113,10 +120,11 @@ def fit_rotation(
             and an inference tensor is written only in inference mode.
 
     Returns:
-        ``(..., 3, 3)`` rotations, M's dtype. A matrix whose M or init holds
-        NaN/Inf gives NaN; other matrices are unaffected. Where the maximiser
-        is not unique (M = 0, rank-1 M, ...) a maximising rotation is returned
-        deterministically (for M = 0: init, else the identity).
+        ``(..., 3, 3)`` rotations, M's dtype and device (``out`` itself where
+        given). A matrix whose M or init holds NaN/Inf gives NaN; other
+        matrices are unaffected. Where the maximiser is not unique (M = 0,
+        rank-1 M, ...) a maximising rotation is returned deterministically
+        (for M = 0: init, else the identity).
 
     Derivatives: differentiable in M through the optimality condition (R^T M
     symmetric; see torchrot/_autograd.py), not through an SVD; finite for
@@ -124,15 +132,58 @@ def fit_rotation(
     exact maximiser evaluated at the returned R. Under ``torch.autocast`` the
     fit runs in float32.
 
+    Errors name the argument (the messages: :doc:`errors`); a call that
+    raises changes no tensor it was given.
+
     Raises:
-        TypeError for an argument of the wrong type or dtype, ValueError for a
-        wrong value, shape or device (docs/errors.md), naming the argument: M
-        not ``(..., 3, 3)`` or not floating point; init of another shape,
-        dtype or device, or not a rotation; out of the wrong shape, dtype or
-        device, with overlapping elements, an inference tensor outside
-        inference mode, or given while M or out requires grad;
-        unknown variant; max_iter out of range; gradient_eps out of range.
-        A call that raises changes no tensor it was given.
+        TypeError: an argument of the wrong type or dtype: M, init or out not a
+            tensor; M or init not float32, float64, float16 or bfloat16; out
+            not of M's dtype; max_iter not an int or None; variant not a str;
+            gradient_eps not a float, int or None.
+        ValueError: a wrong value, shape or device: M not ``(..., 3, 3)``; init
+            not broadcastable to M, on another device, or finite but not a
+            rotation; out of another shape or device than M, with overlapping
+            elements, an inference tensor outside inference mode, or given
+            while M or out requires grad (or carries a forward-mode tangent);
+            an unknown variant; max_iter or gradient_eps out of range.
+
+    Examples:
+        The rotation that maps points x onto y (column vectors, ``y_i = R x_i``):
+
+        >>> R_true = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90 degrees about z
+        >>> x = torch.randn(10, 3)
+        >>> y = x @ R_true.T                    # row i: y_i = R_true x_i
+        >>> M = y.T @ x                         # sum_i y_i x_i^T
+        >>> R = torchrot.fit_rotation(M)
+        >>> torch.allclose(R, R_true, atol=1e-5)
+        True
+
+        Any batch shape; the result is a rotation in M's dtype, differentiable in M:
+
+        >>> M = torch.randn(4, 5, 3, 3, dtype=torch.float64, requires_grad=True)
+        >>> R = torchrot.fit_rotation(M)
+        >>> R.shape, R.dtype
+        (torch.Size([4, 5, 3, 3]), torch.float64)
+        >>> torch.allclose(R.mT @ R, torch.eye(3, dtype=torch.float64)), bool((R.det() > 0).all())
+        (True, True)
+        >>> R.sum().backward()
+        >>> M.grad.shape
+        torch.Size([4, 5, 3, 3])
+
+        A local-global solver's update: one Cayley step from the previous
+        rotations, written over them:
+
+        >>> M_next = M.detach() + 0.01 * torch.randn(4, 5, 3, 3, dtype=torch.float64)
+        >>> R = R.detach()
+        >>> torchrot.fit_rotation(M_next, init=R, max_iter=1, out=R) is R
+        True
+
+        A bad argument raises before anything is computed:
+
+        >>> torchrot.fit_rotation(torch.zeros(3, 4))
+        Traceback (most recent call last):
+            ...
+        ValueError: torchrot.fit_rotation: M must have shape (..., 3, 3), got [3, 4]
     """
     compiling = torch.compiler.is_compiling()
     _check_call(M, init, max_iter, variant, gradient_eps, out, compiling)
@@ -237,22 +288,47 @@ def fit_rotation_info(
     max_iter: int | None = None,
     variant: str = DEFAULT_VARIANT,
 ) -> FitInfo:
-    """:func:`fit_rotation` plus per-matrix diagnostics.
+    """:func:`fit_rotation` plus per-matrix diagnostics: the Cayley steps and how R was found.
 
-    Args: as :func:`fit_rotation` (M ``(..., 3, 3)`` float32/float64, float16/
-    bfloat16 computed in float32; init, max_iter, variant), without ``out``.
     Convention: R (det +1) maximises tr(R^T M); for centred point sets
-    M = sum_i w_i y_i x_i^T gives R x_i ~ y_i (column vectors).
+    ``M = sum_i w_i y_i x_i^T`` gives ``R x_i ~ y_i`` (column vectors).
+
+    Args:
+        M: ``(..., 3, 3)`` float32 or float64 (float16/bfloat16 are computed in
+            float32 and returned in their dtype); any batch shape and strides.
+        init: optional ``(..., 3, 3)`` warm-start rotations broadcastable to M,
+            on M's device, of any float dtype (as :func:`fit_rotation`'s).
+        max_iter: ``None`` (default): iterate each matrix to convergence (with
+            the Horn/Jacobi fallback); ``k >= 1`` (at most 1000): at most k
+            Cayley steps, no fallback.
+        variant: ``"newton"``, ``"conservative"`` (the default) or
+            ``"gershgorin"``: how each step estimates the maximal objective
+            (see :func:`fit_rotation`).
 
     Returns:
         :class:`FitInfo` ``(R, iterations, status)``: R ``(..., 3, 3)`` in M's
         dtype; iterations ``(...)`` int32, the Cayley steps each matrix took;
         status ``(...)`` uint8, a :class:`torchrot.FitStatus` code per matrix.
+        All on M's device.
 
     Not differentiable: none of the outputs requires grad or carries a
     gradient, whatever M does; use :func:`fit_rotation` for that.
 
-    Raises: the errors of :func:`fit_rotation`.
+    Raises:
+        TypeError: an argument of the wrong type or dtype (M or init not a
+            float tensor, max_iter not an int or None, variant not a str), as
+            :func:`fit_rotation`.
+        ValueError: a wrong value, shape or device (M not ``(..., 3, 3)``, init
+            not broadcastable to M or finite but not a rotation, an unknown
+            variant, max_iter out of range), as :func:`fit_rotation`.
+
+    Examples:
+        >>> M = torch.stack([torch.diag(torch.tensor([3.0, 2.0, 1.0])), torch.full((3, 3), float("nan"))])
+        >>> R, iterations, status = torchrot.fit_rotation_info(M)
+        >>> torch.allclose(R[0], torch.eye(3)), bool(R[1].isnan().all())
+        (True, True)
+        >>> iterations.dtype, [torchrot.FitStatus(code).name for code in status.tolist()]
+        (torch.int32, ['CAYLEY', 'NON_FINITE'])
     """
     _check_call(M, init, max_iter, variant, None)
     return FitInfo(*_fit_rotation_info_op(M, init, max_iter, variant))

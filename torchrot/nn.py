@@ -28,14 +28,37 @@ class RotationFit(nn.Module):
     R (det +1) maximises tr(R^T M), i.e. is the rotation nearest M in the
     Frobenius norm (the "special orthogonalisation" used for rotation
     regression). A ``(..., 9)`` input is read row-major: ``M = v.reshape(..., 3, 3)``.
-    Column vectors: for centred point sets M = sum_i w_i y_i x_i^T gives R x_i ~ y_i.
+    Column vectors: for centred point sets ``M = sum_i w_i y_i x_i^T`` gives
+    ``R x_i ~ y_i``. Inputs are float32 or float64 (float16/bfloat16, e.g.
+    under autocast, are computed in float32); R has the input's dtype and
+    device, and gradients flow to M as :func:`torchrot.fit_rotation`'s.
 
     Args:
         max_iter: as :func:`torchrot.fit_rotation`: ``None`` converges every
-            matrix; ``k >= 1`` takes at most k Cayley steps (use with ``init``).
-        variant: ``"newton"``, ``"conservative"`` or ``"gershgorin"``.
-        gradient_eps: damping of the backward near singular systems (see
-            :func:`torchrot.fit_rotation`); ``None`` uses the library default.
+            matrix; ``k >= 1`` (at most 1000) takes at most k Cayley steps
+            (use with ``init``).
+        variant: ``"newton"``, ``"conservative"`` (the default) or ``"gershgorin"``.
+        gradient_eps: damping of the backward near singular systems, a float
+            from 0 to 1000 (see :func:`torchrot.fit_rotation`); ``None`` uses
+            :data:`torchrot.DEFAULT_GRADIENT_EPS`.
+
+    Raises:
+        TypeError: max_iter not an int or None, variant not a str, or
+            gradient_eps not a float, int or None.
+        ValueError: max_iter out of range, an unknown variant, or gradient_eps
+            out of range.
+
+    Examples:
+        >>> layer = torchrot.nn.RotationFit()
+        >>> layer
+        RotationFit(max_iter=None, variant='conservative', gradient_eps=None)
+        >>> v = torch.randn(8, 9, requires_grad=True)  # e.g. a network's 9-D output
+        >>> R = layer(v)
+        >>> R.shape, torch.allclose(R.mT @ R, torch.eye(3).expand(8, 3, 3), atol=1e-5)
+        (torch.Size([8, 3, 3]), True)
+        >>> R.sum().backward()
+        >>> v.grad.shape
+        torch.Size([8, 9])
     """
 
     def __init__(self, max_iter: int | None = None, variant: str = DEFAULT_VARIANT,
@@ -52,8 +75,27 @@ class RotationFit(nn.Module):
     def forward(self, M: torch.Tensor, init: torch.Tensor | None = None) -> torch.Tensor:
         """R ``(..., 3, 3)`` for M ``(..., 3, 3)`` or ``(..., 9)`` (row-major).
 
-        ``init``: optional warm-start rotations ``(..., 3, 3)`` broadcastable
-        to the batch (no gradient flows to it).
+        Args:
+            M: ``(..., 3, 3)`` or ``(..., 9)`` float32 or float64 (float16/
+                bfloat16 computed in float32).
+            init: optional warm-start rotations ``(..., 3, 3)`` broadcastable
+                to the batch, on M's device (no gradient flows to it).
+
+        Returns:
+            ``(..., 3, 3)`` rotations in M's dtype, differentiable in M.
+
+        Raises:
+            TypeError: M not a tensor; and :func:`torchrot.fit_rotation`'s
+                errors for M's dtype and init.
+            ValueError: M not ``(..., 3, 3)`` or ``(..., 9)``; init not
+                broadcastable or not rotations (from :func:`torchrot.fit_rotation`).
+
+        Examples:
+            >>> layer = torchrot.nn.RotationFit(max_iter=1)  # one warm-started Cayley step
+            >>> M = torch.randn(4, 3, 3)
+            >>> R_previous = torchrot.fit_rotation(M)
+            >>> layer(M + 0.01 * torch.randn(4, 3, 3), init=R_previous).shape
+            torch.Size([4, 3, 3])
         """
         return fit_rotation(as_matrices(M), init, max_iter=self.max_iter, variant=self.variant,
                             gradient_eps=self.gradient_eps)
@@ -65,13 +107,24 @@ class RotationFit(nn.Module):
 class RigidRegistration(nn.Module):
     """Weighted point-set registration layer: ``(x, y, weights) -> (R, t, s)``.
 
-    Minimises sum_i w_i ||s R x_i + t - y_i||^2 (column vectors, y ~ s R x + t)
-    as :func:`torchrot.rigid_registration`: x, y ``(..., N, 3)``, weights
-    ``(..., N)`` >= 0 or None; returns R ``(..., 3, 3)``, t ``(..., 3)``,
-    s ``(...)``.
+    Minimises ``sum_i w_i ||s R x_i + t - y_i||^2`` (column vectors,
+    ``y ~ s R x + t``) as :func:`torchrot.rigid_registration`: x, y
+    ``(..., N, 3)``, weights ``(..., N)`` >= 0 or None; returns R ``(..., 3, 3)``,
+    t ``(..., 3)``, s ``(...)`` in the inputs' dtype (float32, float64;
+    float16/bfloat16 computed in float32), differentiable in x, y and weights.
 
     Args:
-        scale: also fit Umeyama's uniform scale (otherwise s = 1).
+        scale: also fit Umeyama's uniform scale (otherwise s = 1); a bool.
+
+    Raises:
+        TypeError: scale is not a bool.
+
+    Examples:
+        >>> register = torchrot.nn.RigidRegistration(scale=True)
+        >>> x = torch.randn(2, 10, 3, dtype=torch.float64)
+        >>> R, t, s = register(x, 3.0 * x + 1.0)  # y = s x + t: R = I, s = 3
+        >>> R.shape, t.shape, s.round(decimals=6)
+        (torch.Size([2, 3, 3]), torch.Size([2, 3]), tensor([3., 3.], dtype=torch.float64))
     """
 
     def __init__(self, scale: bool = False) -> None:
@@ -82,7 +135,33 @@ class RigidRegistration(nn.Module):
 
     def forward(self, x: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None, *,
                 init: torch.Tensor | None = None) -> RigidTransform:
-        """``(R, t, s)`` mapping x onto y; ``init``: optional warm-start rotations."""
+        """``(R, t, s)`` mapping x onto y: ``y_i ~ s R x_i + t``.
+
+        Args:
+            x: ``(..., N, 3)`` source points.
+            y: ``(..., N, 3)`` target points, x's N, dtype and device; batch
+                dimensions of x, y and weights broadcast.
+            weights: optional ``(..., N)`` non-negative weights; ``None``: all ones.
+            init: optional ``(..., 3, 3)`` warm-start rotations broadcastable to
+                the batch (no gradient flows to it).
+
+        Returns:
+            :class:`torchrot.RigidTransform` ``(R, t, s)``: ``(..., 3, 3)``,
+            ``(..., 3)`` and ``(...)`` over the broadcast batch shape.
+
+        Raises:
+            TypeError: as :func:`torchrot.rigid_registration` (a non-tensor,
+                an unsupported or mismatched dtype).
+            ValueError: as :func:`torchrot.rigid_registration` (shapes,
+                devices, negative weights, fewer than 3 points of nonzero weight).
+
+        Examples:
+            >>> register = torchrot.nn.RigidRegistration()
+            >>> x = torch.randn(5, 3)
+            >>> R, t, s = register(x, x, torch.tensor([1.0, 1.0, 1.0, 0.0, 0.0]))  # the first 3 points only
+            >>> torch.allclose(R, torch.eye(3), atol=1e-5), torch.allclose(t, torch.zeros(3), atol=1e-5)
+            (True, True)
+        """
         return rigid_registration(x, y, weights, scale=self.scale, init=init)
 
     def extra_repr(self) -> str:

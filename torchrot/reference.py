@@ -35,12 +35,32 @@ __all__ = [
 def rotation_svd(M: torch.Tensor) -> torch.Tensor:
     """Rotation maximising tr(R^T M) by SVD: R = U diag(1, 1, det(U V^T)) V^T.
 
+    The textbook answer (the paper's Eq. 4), computed in M's dtype by
+    ``torch.linalg.svd``: pass float64 for a reference answer. Column-vector
+    convention: for centred point sets ``M = sum_i w_i y_i x_i^T`` gives
+    ``R x_i ~ y_i``.
+
     Args:
-        M: ``(..., 3, 3)`` floating tensor (computed in M's dtype; pass float64
-            for a reference answer).
+        M: ``(..., 3, 3)`` float32 or float64, any batch shape, on any device
+            ``torch.linalg.svd`` supports. (float16/bfloat16 pass the checks,
+            but torch.linalg.svd has no kernel for them: it raises.)
+
     Returns:
-        ``(..., 3, 3)`` rotations, det R = +1. Column-vector convention: for
-        centred point sets M = sum_i w_i y_i x_i^T, R x_i ~ y_i.
+        ``(..., 3, 3)`` rotations (det R = +1) in M's dtype and on its device.
+        Differentiable by autograd through the SVD (NaN/Inf where singular
+        values repeat).
+
+    Raises:
+        TypeError: M is not a tensor, or not float32, float64, float16 or bfloat16.
+        ValueError: M's shape is not ``(..., 3, 3)``.
+
+    Examples:
+        >>> M = torch.randn(5, 3, 3, dtype=torch.float64)
+        >>> R = torchrot.rotation_svd(M)
+        >>> R.shape, torch.allclose(R.det(), torch.ones(5, dtype=torch.float64))
+        (torch.Size([5, 3, 3]), True)
+        >>> torch.allclose(R, torchrot.fit_rotation(M))
+        True
     """
     check_matrix_arg(M, "M", op="torchrot.rotation_svd")
     U, _, Vh = torch.linalg.svd(M)
@@ -57,12 +77,24 @@ def rigid_registration_svd(x: torch.Tensor, y: torch.Tensor, weights: torch.Tens
     ``benchmarks/registration.py``. Differentiable by autograd (through the SVD).
 
     Args:
-        x, y: ``(..., N, 3)`` source and target points (column vectors: y ~ s R x + t).
+        x: ``(..., N, 3)`` source points, float32 or float64.
+        y: ``(..., N, 3)`` target points, x's dtype (column vectors:
+            ``y ~ s R x + t``).
         weights: optional ``(..., N)`` non-negative weights; None: all ones.
         scale: also fit Umeyama's scale s; False: s = 1.
+
     Returns:
         ``(R, t, s)``: ``(..., 3, 3)``, ``(..., 3)`` and ``(...)``, in the inputs'
-        dtype (pass float64 for a reference answer). No argument checks.
+        dtype (pass float64 for a reference answer). No argument checks: use
+        :func:`torchrot.rigid_registration` for checked input.
+
+    Examples:
+        >>> from torchrot.reference import rigid_registration_svd
+        >>> from torchrot.testing import registration_problem
+        >>> x, y, (R_true, t_true, s_true) = registration_problem(n=20, seed=0)  # y = s R x + t
+        >>> R, t, s = rigid_registration_svd(x, y, scale=True)
+        >>> torch.allclose(R, R_true), torch.allclose(t, t_true), torch.allclose(s, s_true)
+        (True, True, True)
     """
     if weights is None:
         weights = torch.ones(x.shape[:-1], dtype=x.dtype, device=x.device)
@@ -99,22 +131,61 @@ def cayley_rotation(z: torch.Tensor) -> torch.Tensor:
     """The rotation ((1 - z.z) I + 2 z z^T + 2 [z]x) / (1 + z.z) (paper Eq. 10).
 
     Args:
-        z: ``(..., 3)`` Cayley parameters, z = tan(theta / 2) * axis (Eq. 7).
+        z: ``(..., 3)`` Cayley parameters, z = tan(theta / 2) * axis (Eq. 7),
+            floating point.
+
     Returns:
-        ``(..., 3, 3)`` rotations.
+        ``(..., 3, 3)`` rotations by theta about the axis, z's dtype and device.
+
+    Examples:
+        >>> from torchrot.reference import cayley_rotation
+        >>> cayley_rotation(torch.tensor([0.0, 0.0, 1.0]))  # tan(45 degrees) = 1: 90 degrees about z
+        tensor([[ 0., -1.,  0.],
+                [ 1.,  0.,  0.],
+                [ 0.,  0.,  1.]])
     """
     return _fraction_rotation(-z, torch.ones_like(z[..., 0]))  # z = -w / d with d = 1
 
 
 def quaternion_rotation(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices of unit quaternions ``(..., 4)`` ordered (w, x, y, z)
-    (torchrot.generic.quaternion's entries, stacked)."""
+    """Rotation matrices of unit quaternions (torchrot.generic.quaternion's entries, stacked).
+
+    Args:
+        q: ``(..., 4)`` unit quaternions ordered (w, x, y, z), floating point
+            (not normalised here).
+
+    Returns:
+        ``(..., 3, 3)`` rotations, q's dtype and device; q and -q give the same R.
+
+    Examples:
+        >>> from torchrot.reference import quaternion_rotation
+        >>> quaternion_rotation(torch.tensor([0.0, 0.0, 0.0, 1.0]))  # 180 degrees about z
+        tensor([[-1.,  0.,  0.],
+                [ 0., -1.,  0.],
+                [ 0.,  0.,  1.]])
+    """
     return torch.stack(_quaternion_rotation(*q.unbind(-1)), -1).reshape(q.shape[:-1] + (3, 3))
 
 
 def horn_matrix(M: torch.Tensor) -> torch.Tensor:
     """Horn's symmetric 4x4 K with tr(R(q)^T M) = q^T K q for unit q (w, x, y, z)
-    (torchrot.generic.quaternion's entries, stacked)."""
+    (torchrot.generic.quaternion's entries, stacked).
+
+    Args:
+        M: ``(..., 3, 3)`` floating point.
+
+    Returns:
+        ``(..., 4, 4)`` symmetric matrices, M's dtype and device; the
+        eigenvector of the largest eigenvalue is the quaternion of the
+        rotation maximising tr(R^T M).
+
+    Examples:
+        >>> from torchrot.reference import horn_matrix, quaternion_rotation
+        >>> M = torch.randn(3, 3, dtype=torch.float64)
+        >>> q = torch.tensor([1.0, 2.0, 3.0, 4.0], dtype=torch.float64) / 30 ** 0.5
+        >>> torch.allclose(q @ horn_matrix(M) @ q, (quaternion_rotation(q) * M).sum())
+        True
+    """
     return torch.stack(_horn(list(M.flatten(-2).unbind(-1))), -1).reshape(M.shape[:-2] + (4, 4))
 
 
@@ -129,21 +200,48 @@ def fit_rotation_reference(
     """torchrot's algorithm in batched PyTorch (any device, ``meta`` included).
 
     Same contract as :func:`torchrot.fit_rotation`: returns R (det +1)
-    maximising tr(R^T M), column-vector convention (M = sum_i w_i y_i x_i^T
-    gives R x_i ~ y_i). Agrees with the C++ kernel to rounding (the same iterations
-    and status codes in float64; tests/test_generic_path.py).
+    maximising tr(R^T M), column-vector convention (``M = sum_i w_i y_i x_i^T``
+    gives ``R x_i ~ y_i``). Agrees with the C++ kernel to rounding (the same
+    iterations and status codes in float64; tests/test_generic_path.py). Runs
+    where M is, as elementwise tensor operations: on CUDA, XPU or MPS tensors
+    too, and on ``meta`` tensors (shapes only). Autograd through it
+    differentiates the iterations themselves; :func:`torchrot.fit_rotation`'s
+    derivative is that of the exact maximiser (the optimality condition).
 
     Args:
-        M: ``(..., 3, 3)`` float32/float64 (float16/bfloat16 computed in float32).
-        init: optional rotations broadcastable to M: the warm start.
-        max_iter: None to converge each matrix; k >= 1 for at most k Cayley steps.
-        variant: "newton", "conservative" or "gershgorin" (paper Sec. 4.2).
+        M: ``(..., 3, 3)`` float32 or float64 (float16/bfloat16 are computed in
+            float32 and returned in their dtype); any batch shape.
+        init: optional ``(..., 3, 3)`` rotations broadcastable to M, on M's
+            device, of any float dtype (cast to the compute dtype): the warm
+            start. ``None``: a cold start.
+        max_iter: ``None`` (default) to converge each matrix (with the
+            Horn/Jacobi fallback); ``k >= 1`` (at most 1000) for at most k
+            Cayley steps.
+        variant: ``"newton"``, ``"conservative"`` (the default) or
+            ``"gershgorin"`` (paper Sec. 4.2).
         return_info: also return per-matrix iteration counts and status codes.
+
     Returns:
-        R, or (R, iterations int32, status uint8) if ``return_info``.
+        R ``(..., 3, 3)`` in M's dtype, or, if ``return_info``, ``(R,
+        iterations, status)`` with iterations ``(...)`` int32 and status
+        ``(...)`` uint8 (:class:`torchrot.FitStatus` codes), as
+        :func:`torchrot.fit_rotation_info` returns them. All on M's device.
+
     Raises:
-        ValueError/TypeError for bad arguments; ValueError if a finite ``init``
-        is not a rotation (not checked on ``meta`` tensors).
+        TypeError: M or init not a tensor, or not float32, float64, float16 or
+            bfloat16; max_iter not an int or None; variant not a str.
+        ValueError: M not ``(..., 3, 3)``; init not broadcastable to M or on
+            another device; an unknown variant; max_iter out of range; a
+            finite ``init`` that is not a rotation (not checked on ``meta``
+            tensors, whose values are unknown).
+
+    Examples:
+        >>> M = torch.randn(6, 3, 3, dtype=torch.float64)
+        >>> R, iterations, status = torchrot.fit_rotation_reference(M, return_info=True)
+        >>> torch.allclose(R, torchrot.fit_rotation(M)), iterations.shape, status.dtype
+        (True, torch.Size([6]), torch.uint8)
+        >>> torchrot.fit_rotation_reference(M.to("meta")).shape  # shapes only, no data
+        torch.Size([6, 3, 3])
     """
     check_all(M, init, max_iter, variant)
     return fit_rotation_generic(M, init, max_iter, variant, return_info, bad_init_error)
@@ -157,7 +255,7 @@ def fit_rotation_backward_reference(
     The fitted R makes S = R^T M symmetric; differentiating that condition
     (csrc/kernel/rotation_gradient.h has the derivation) gives
     dL/dM = R [u]x with (tr(S) I - S) u = vex(R^T G - G^T R), solved with
-    Tikhonov damping lambda = gradient_eps |M|_F:
+    Tikhonov damping ``lambda = gradient_eps |M|_F``:
     u = (A^2 + lambda^2 I)^-1 A g, evaluated as Re (A + i lambda I)^-1 g by
     the 3x3 adjugate, as the CPU kernel (forming A^2 would square A's
     condition number: ~3 digits lost in float32), elementwise over the 9
@@ -169,11 +267,28 @@ def fit_rotation_backward_reference(
 
     Args:
         grad: ``(..., 3, 3)`` with R's shape, dtype and device.
-        R: ``(..., 3, 3)`` the fitted rotations.
-        M: ``(..., 3, 3)`` the fitted matrices, broadcastable to R.
-        gradient_eps: damping, a finite float >= 0 (0: undamped).
+        R: ``(..., 3, 3)`` the fitted rotations, float32, float64, float16 or bfloat16.
+        M: ``(..., 3, 3)`` the fitted matrices, broadcastable to R, R's dtype and device.
+        gradient_eps: damping, a finite float from 0 (undamped) to 1000.
+
     Returns:
         ``(..., 3, 3)`` in R's dtype (reduced precision computed in float32).
+
+    Raises:
+        TypeError: an argument not a tensor, R not float32, float64, float16 or
+            bfloat16, grad or M not of R's dtype; gradient_eps not a float or int.
+        ValueError: shapes other than ``(..., 3, 3)``, grad not of R's shape, M
+            not broadcastable to R, a tensor on another device than R;
+            gradient_eps out of range.
+
+    Examples:
+        >>> from torchrot.reference import fit_rotation_backward_reference
+        >>> M = torch.randn(4, 3, 3, dtype=torch.float64, requires_grad=True)
+        >>> R = torchrot.fit_rotation(M)
+        >>> grad = torch.randn(4, 3, 3, dtype=torch.float64)
+        >>> R.backward(grad)
+        >>> torch.allclose(fit_rotation_backward_reference(grad, R.detach(), M.detach()), M.grad)
+        True
     """
     check_backward(grad, R, M, gradient_eps)
     return fit_rotation_backward_generic(grad, R, M, gradient_eps)

@@ -39,9 +39,20 @@ MIN_POINTS = 3
 class RigidTransform(NamedTuple):
     """Result of :func:`rigid_registration`: ``y ~ s R x + t`` (column vectors).
 
-    R: ``(..., 3, 3)`` rotations (det +1).
-    t: ``(..., 3)`` translations.
-    s: ``(...)`` scales (ones when ``scale=False``).
+    Attributes:
+        R: ``(..., 3, 3)`` rotations (det +1).
+        t: ``(..., 3)`` translations.
+        s: ``(...)`` scales (ones when ``scale=False``).
+
+    All three over the problems' broadcast batch shape, in the inputs' dtype.
+
+    Examples:
+        >>> x = torch.randn(2, 10, 3)
+        >>> R, t, s = torchrot.rigid_registration(x, x + 1.0)  # a pure translation
+        >>> R.shape, t.shape, s.shape
+        (torch.Size([2, 3, 3]), torch.Size([2, 3]), torch.Size([2]))
+        >>> torch.allclose(t, torch.ones(2, 3), atol=1e-5), torch.allclose(R, torch.eye(3), atol=1e-5)
+        (True, True)
     """
 
     R: torch.Tensor
@@ -57,7 +68,7 @@ def rigid_registration(
     scale: bool = False,
     init: torch.Tensor | None = None,
 ) -> RigidTransform:
-    """Rigid (or similarity) transform minimising sum_i w_i ||s R x_i + t - y_i||^2.
+    """Rigid (or similarity) transform minimising ``sum_i w_i ||s R x_i + t - y_i||^2``.
 
     Column-vector convention: the result maps x onto y, ``y_i ~ s R x_i + t``.
     R is :func:`torchrot.fit_rotation` of the weighted cross-covariance
@@ -66,17 +77,20 @@ def rigid_registration(
     ``tr(R^T M) / sum_i p_i ||x_i - x̄||^2``.
 
     Args:
-        x: ``(..., N, 3)`` source points.
-        y: ``(..., N, 3)`` target points, same N; batch dimensions of x, y and
-            weights broadcast against each other.
-        weights: optional ``(..., N)`` non-negative weights (used as given, not
-            squared); a zero weight drops its point. ``None``: all ones.
+        x: ``(..., N, 3)`` source points, float32, float64, float16 or bfloat16
+            (the last two computed in float32).
+        y: ``(..., N, 3)`` target points, same N, dtype and device; batch
+            dimensions of x, y and weights broadcast against each other.
+        weights: optional ``(..., N)`` non-negative weights of x's dtype and
+            device (used as given, not squared); a zero weight drops its point.
+            ``None``: all ones.
         scale: also fit a uniform scale s (Umeyama). ``False``: s = 1.
         init: optional ``(..., 3, 3)`` rotations broadcastable to the batch,
-            of any float dtype (float32, float64, float16, bfloat16),
-            forwarded to :func:`torchrot.fit_rotation` as its warm start (e.g.
-            the previous frame's R), which checks that they are rotations and
-            brings them to the compute precision. No gradient flows to init.
+            on x's device, of any float dtype (float32, float64, float16,
+            bfloat16), forwarded to :func:`torchrot.fit_rotation` as its warm
+            start (e.g. the previous frame's R), which checks that they are
+            rotations and brings them to the compute precision. No gradient
+            flows to init.
 
     Returns:
         :class:`RigidTransform` ``(R, t, s)`` with R ``(..., 3, 3)``, t
@@ -99,6 +113,23 @@ def rigid_registration(
             problem whose weighted points all coincide (s undefined). The value
             checks are skipped inside torch.compile and torch.func transforms,
             where they would need data-dependent control flow.
+
+    Examples:
+        >>> R_true = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        >>> x = torch.randn(10, 3, dtype=torch.float64)
+        >>> y = 2.0 * x @ R_true.T + torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)  # y_i = s R x_i + t
+        >>> R, t, s = torchrot.rigid_registration(x, y, scale=True)
+        >>> torch.allclose(R, R_true), t.round(decimals=6), s.round(decimals=6)
+        (True, tensor([1., 2., 3.], dtype=torch.float64), tensor(2., dtype=torch.float64))
+
+        Weights drop points: here the outliers of y.
+
+        >>> y_outliers = y.clone()
+        >>> y_outliers[:3] += 10.0
+        >>> weights = torch.ones(10, dtype=torch.float64)
+        >>> weights[:3] = 0.0
+        >>> torch.allclose(torchrot.rigid_registration(x, y_outliers, weights).R, R_true)
+        True
     """
     _check_arguments(x, y, weights, scale, init)
     if _values_readable(x, y, weights):

@@ -16,9 +16,9 @@ e.g. the previous iteration's R) and an iteration count ``max_iter``
 
 Accuracy. Where the maximiser is unique, fitting R is itself ill-conditioned
 by kappa = sigma_1 / (sigma_2 + sigma_3) (singular values of M, sigma_3 signed
-by det M): a backward-stable method errs by about eps * kappa in |R - R*|_F
+by det M): a backward-stable method errs by about eps * kappa in ``|R - R*|_F``
 (float32 SVD does no better). ``tests/test_methods.py`` checks
-|R - R*|_F <= 100 eps max(kappa, 1) against float64 SVD where the table says
+``|R - R*|_F <= 100 eps max(kappa, 1)`` against float64 SVD where the table says
 "accurate"; the benchmark reports every method on every data set.
 
 ============================  ====================================  ==========================================

@@ -21,7 +21,7 @@ FA3R_PAPER_ITERATIONS = 10
 def fa3r(M: Tensor, *, max_iter: int | None = FA3R_PAPER_ITERATIONS, return_iterations: bool = False):
     """FA3R, Wu, Liu, Zhou & Li (2018), "Fast rigid 3D registration solution: a
     simple method free of SVD and eigen-decomposition": the iteration on the
-    columns h_x, h_y, h_z of M
+    columns h_x, h_y, h_z of M::
 
         h_x <- k (h_x + h_y x h_z),  h_y <- k (h_y + h_z x h_x),
         h_z <- k (h_z + h_x x h_y),  k = 2 / (|h_x|^2 + |h_y|^2 + |h_z|^2 + 1),
@@ -33,18 +33,18 @@ def fa3r(M: Tensor, *, max_iter: int | None = FA3R_PAPER_ITERATIONS, return_iter
 
     The iteration is not scale invariant (the "+1" in k; the authors apply it
     to a covariance averaged over the points), so M is first divided by
-    ||M||_F / sqrt(3), which leaves a rotation a fixed point.
+    ``||M||_F / sqrt(3)``, which leaves a rotation a fixed point.
 
     Args:
         M: ``(..., 3, 3)`` float32/float64.
         max_iter: ``k`` steps, default 10 (the authors' implementation);
-            ``None``: until the step from an iterate with ||X^T X - I||_F <
-            sqrt(eps) (convergence is quadratic near the fixed point, so the
+            ``None``: until the step from an iterate with
+            ``||X^T X - I||_F < sqrt(eps)`` (convergence is quadratic near the fixed point, so the
             result is orthonormal to ~eps), at most ``FA3R_CAP`` steps.
         return_iterations: also return the steps per matrix.
     Returns:
-        ``(..., 3, 3)`` matrices X as the method leaves them: rotations only
-        once converged (the method does not re-orthonormalise), and int32 step
+        ``(..., 3, 3)`` matrices X in M's dtype as the method leaves them,
+        rotations only once converged (the method does not re-orthonormalise), and int32 step
         counts if ``return_iterations``.
 
     Accuracy: converged, ~1e-6 (float32) / ~1e-14 (float64). A small singular
@@ -53,6 +53,18 @@ def fa3r(M: Tensor, *, max_iter: int | None = FA3R_PAPER_ITERATIONS, return_iter
     matrices of condition number >~ 1e3 (the warm data) visibly
     non-orthonormal. Where s_2 + s_3 = 0 (rank-1 M, the non-unique cases) the
     small values stay 0 and the result is not a rotation.
+
+    Raises:
+        TypeError: M not a tensor, or not float32 or float64.
+        ValueError: M not ``(..., 3, 3)``; max_iter neither None nor an int >= 1.
+
+    Examples:
+        >>> from torchrot.methods import fa3r
+        >>> from torchrot.testing import make_matrices
+        >>> M = make_matrices("rot60", 8)
+        >>> X, steps = fa3r(M, return_iterations=True)  # the authors' 10 steps
+        >>> torch.allclose(X, torchrot.fit_rotation(M)), steps.tolist()
+        (True, [10, 10, 10, 10, 10, 10, 10, 10])
     """
     _check_matrices("fa3r", M, None, max_iter)
     A, _ = _flat(M)

@@ -52,7 +52,7 @@ def _inverse_transpose(X: Tensor, inverse: str) -> Tensor:
 def higham_polar(M: Tensor, *, max_iter: int | None = None, inverse: str = "lu", return_iterations: bool = False):
     """Polar decomposition by Higham's (1986) scaled Newton iteration
     X <- (gamma X + X^{-T} / gamma) / 2, X_0 = M, with his (1, inf)-norm
-    scaling gamma = (||X^{-1}||_1 ||X^{-1}||_inf / (||X||_1 ||X||_inf))^{1/4}
+    scaling ``gamma = (||X^{-1}||_1 ||X^{-1}||_inf / (||X||_1 ||X||_inf))^{1/4}``
     (switched off once the relative change is below 1e-2, where the unscaled
     iteration converges quadratically), then the det-fix: where det U < 0 the
     last axis of H = U^T M is flipped (the eigenvector of the smallest
@@ -63,7 +63,7 @@ def higham_polar(M: Tensor, *, max_iter: int | None = None, inverse: str = "lu",
     Args:
         M: ``(..., 3, 3)`` float32/float64.
         max_iter: ``None``: iterate each matrix until the relative change
-            ||X_{k+1} - X_k||_F / ||X_{k+1}||_F < sqrt(eps) (the next iterate
+            ``||X_{k+1} - X_k||_F / ||X_{k+1}||_F < sqrt(eps)`` (the next iterate
             would change by ~eps: quadratic convergence), at most
             ``HIGHAM_CAP`` steps. ``k``: exactly k steps (scaling always on).
         inverse: ``"lu"`` (default): X^{-1} by batched LU with partial
@@ -83,6 +83,18 @@ def higham_polar(M: Tensor, *, max_iter: int | None = None, inverse: str = "lu",
     warm-startable. Fails on singular M (X^{-1} does not exist: NaN/Inf, e.g.
     exactly rank-deficient M), and where det M < 0 with two small singular
     values nearly equal the det-fix axis is ill-defined (as is the answer).
+
+    Raises:
+        TypeError: M not a tensor, or not float32 or float64.
+        ValueError: M not ``(..., 3, 3)``; max_iter neither None nor an int >= 1;
+            inverse neither ``"lu"`` nor ``"cofactor"``.
+
+    Examples:
+        >>> from torchrot.methods import higham_polar
+        >>> from torchrot.testing import make_matrices
+        >>> M = make_matrices("warm", 8)
+        >>> torch.allclose(higham_polar(M), torchrot.fit_rotation(M))
+        True
     """
     _check_matrices("higham_polar", M, None, max_iter)
     if inverse not in ("lu", "cofactor"):

@@ -20,18 +20,29 @@ def horn(M: Tensor) -> Tensor:
     Args:
         M: ``(..., 3, 3)`` float32/float64.
     Returns:
-        ``(..., 3, 3)`` rotations maximising tr(R^T M) (column vectors:
-        M = sum w y x^T gives R x ~ y); exact rotations to rounding.
+        ``(..., 3, 3)`` rotations maximising tr(R^T M) in M's dtype (column
+        vectors, ``M = sum w y x^T`` gives ``R x ~ y``); exact rotations to rounding.
 
     Accuracy: K's eigenvalues are the signed sums +-sigma_1 +- sigma_2 +-
     sigma_3 of M's singular values, and the gap at the top is
     2 (sigma_2 + sigma_3), so the eigenvector (hence R) errs by about
-    eps ||M|| / (sigma_2 + sigma_3): ~1e-6 (float32) / ~1e-15 (float64) on
+    ``eps ||M|| / (sigma_2 + sigma_3)``: ~1e-6 (float32) / ~1e-15 (float64) on
     well-conditioned M, growing on the warm data with condition number 1e5
     (float32 ~1e-2, like any float32 method there). Where sigma_2 + sigma_3 = 0
     (rank-1 M, M = -I, ...) the maximiser is not unique and Horn returns one of
     them. det M < 0, rank-2 M and 180-degree rotations are handled exactly (the
     quaternion needs no special case).
+
+    Raises:
+        TypeError: M not a tensor, or not float32 or float64.
+        ValueError: M not ``(..., 3, 3)``.
+
+    Examples:
+        >>> from torchrot.methods import horn
+        >>> from torchrot.testing import make_matrices
+        >>> M = make_matrices("rot60", 8)
+        >>> torch.allclose(horn(M), torchrot.fit_rotation(M))
+        True
     """
     _check_matrices("horn", M)
     _, vectors = torch.linalg.eigh(horn_matrix(M))

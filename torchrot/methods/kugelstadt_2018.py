@@ -41,10 +41,11 @@ def kugelstadt(M: Tensor, init: Tensor, *, max_iter: int = 1) -> Tensor:
 
     The Newton step vector is the one of torchrot's ``variant="newton"`` (the
     Cayley step with c = tr S, Eq. 24 of Zhang et al.: z = 2 omega), but Alg. 3
-    turns it into a rotation with the quaternion ((1 - |omega|^2), 2 omega) /
-    (1 + |omega|^2), a rotation by 4 atan(|z| / 2) about z, where the Cayley
-    map Q(z) rotates by 2 atan(|z|). The two results therefore agree to third
-    order in the step, not to rounding: ~|z|^3 / 2 radians apart, 3e-7 for a one
+    turns it into a rotation with the quaternion
+    ``((1 - |omega|^2), 2 omega) / (1 + |omega|^2)``, a rotation by
+    ``4 atan(|z| / 2)`` about z, where the Cayley map Q(z) rotates by
+    ``2 atan(|z|)``. The two results therefore agree to third order in the
+    step, not to rounding: ``~|z|^3 / 2`` radians apart, 3e-7 for a one
     degree step, 1e-3 for 15 degrees (``tests/test_methods.py`` checks that relation
     to rounding). Alg. 3's guards (gradient steps where det H ~ 0 or the
     Newton step descends) are kept; M is first divided by its largest entry
@@ -68,6 +69,21 @@ def kugelstadt(M: Tensor, init: Tensor, *, max_iter: int = 1) -> Tensor:
     guards' gradient steps leave errors up to 180 degrees. Useless for large
     remaining rotations (60 degrees: ~90% above 1e-3), like torchrot's
     ``variant="newton", max_iter=1``.
+
+    Raises:
+        TypeError: M or init not a tensor, not float32 or float64, or init not
+            of M's dtype and device; init missing (None).
+        ValueError: M or init not ``(..., 3, 3)``, init not broadcastable to
+            M; max_iter not an int >= 1.
+
+    Examples:
+        >>> from torchrot.methods import kugelstadt
+        >>> from torchrot.testing import make_warm_start
+        >>> M, init = make_warm_start("rot60", 8, seed=0)  # init: the previous rotations
+        >>> R_best = torchrot.rotation_svd(M)
+        >>> error = lambda R: (R - R_best).norm(dim=(-2, -1))
+        >>> bool((error(kugelstadt(M, init)) < error(init)).all())  # one Newton step closer
+        True
     """
     _check_matrices("kugelstadt", M, init, max_iter, init_required=True)
     if max_iter is None:

@@ -45,9 +45,10 @@ def mueller(
     the rotational part of deformations": iterative quaternion update, warm
     startable.
 
-    Each step rotates the current R(q) about omega = sum_i r_i x a_i /
-    (|sum_i r_i . a_i| + guard) by |omega| (r_i, a_i: columns of R and M), i.e.
-    a gradient-ascent step on tr(R^T M) with step length 1 / |tr(R^T M)|, and
+    Each step rotates the current R(q) about
+    ``omega = sum_i r_i x a_i / (|sum_i r_i . a_i| + guard)`` by ``|omega|``
+    (r_i, a_i: columns of R and M), i.e. a gradient-ascent step on tr(R^T M)
+    with step length ``1 / |tr(R^T M)|``, and
     renormalises q. M is first divided by its largest entry, so that the
     paper's guard 1e-9 is relative to M's scale (the step itself is scale
     invariant).
@@ -58,13 +59,13 @@ def mueller(
             identity), converted to quaternions once.
         max_iter: ``k``: exactly k updates (the paper's fixed-count use, warm
             started from the previous frame). ``None``: iterate each matrix
-            until its step angle |omega| < ``tol`` (default 16 eps of the
+            until its step angle ``|omega| < tol`` (default 16 eps of the
             dtype; the paper's double-precision code breaks at 1e-9), at most
             ``MUELLER_CAP`` updates.
         tol: stopping threshold of the converged mode (radians).
         return_iterations: also return the number of updates per matrix.
     Returns:
-        ``(..., 3, 3)`` rotations (always exact rotations: R = R(q)), and
+        ``(..., 3, 3)`` rotations in M's dtype (always exact rotations, R = R(q)), and
         int32 iteration counts if ``return_iterations``.
 
     Accuracy: converged, ~1e-5 (float32) / ~1e-14 (float64) on the 60- and
@@ -81,6 +82,20 @@ def mueller(
     off, or M = -I from the identity) the step is zero and the method stays
     there; where tr(R^T M) = 0 the guard makes the first step an arbitrary
     rotation (as in the paper).
+
+    Raises:
+        TypeError: M or init not a tensor, not float32 or float64, or init not
+            of M's dtype and device.
+        ValueError: M or init not ``(..., 3, 3)``, init not broadcastable to
+            M; max_iter neither None nor an int >= 1.
+
+    Examples:
+        >>> from torchrot.methods import mueller
+        >>> from torchrot.testing import make_matrices
+        >>> M = make_matrices("rot60", 8)
+        >>> R, steps = mueller(M, return_iterations=True)  # converged mode
+        >>> torch.allclose(R, torchrot.fit_rotation(M)), steps.dtype
+        (True, torch.int32)
     """
     _check_matrices("mueller", M, init, max_iter)
     A, R0 = _flat(M, init)

@@ -23,10 +23,22 @@ def _quaternion_product(p: Tensor, q: Tensor) -> Tensor:
 
 
 def rotation_to_quaternion(R: Tensor) -> Tensor:
-    """Unit quaternions (w, x, y, z) of rotations ``(..., 3, 3)`` (Shepperd's
-    method: the largest of |w|, |x|, |y|, |z| is computed from the diagonal, the
-    others from off-diagonal sums, so no component loses accuracy). Inverse of
-    :func:`torchrot.reference.quaternion_rotation` up to the sign of q."""
+    """Unit quaternions (w, x, y, z) ``(..., 4)`` of rotations ``(..., 3, 3)``,
+    R's dtype and device (Shepperd's method: the largest in magnitude of w, x,
+    y, z is computed from the diagonal, the others from off-diagonal sums, so
+    no component loses accuracy). Inverse of
+    :func:`torchrot.reference.quaternion_rotation` up to the sign of q.
+
+    Examples:
+        >>> from torchrot.methods import rotation_to_quaternion
+        >>> from torchrot.reference import quaternion_rotation
+        >>> from torchrot.testing import rotations
+        >>> rotation_to_quaternion(torch.diag(torch.tensor([-1.0, -1.0, 1.0])))  # 180 degrees about z
+        tensor([0., 0., 0., 1.])
+        >>> R = rotations(5, seed=0)
+        >>> torch.allclose(quaternion_rotation(rotation_to_quaternion(R)), R)
+        True
+    """
     r = R.flatten(-2)
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = r.unbind(-1)
     four_squares = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22,

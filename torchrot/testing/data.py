@@ -5,13 +5,15 @@ needed)."""
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 
 from torchrot.reference import cayley_rotation
 
-__all__ = ['Generator', 'soa_view', 'tiled_view', 'rotations', 'random_rotations', 'registration_problem', 'random_spd', 'DISTRIBUTIONS', 'WELL_CONDITIONED', 'make_matrices', 'edge_case_matrices', 'make_warm_start', 'DEGENERATE_FAMILIES', 'make_degenerate_matrices']
+__all__ = ['Generator', 'soa_view', 'tiled_view', 'rotations', 'random_rotations', 'registration_problem',
+           'random_spd', 'DISTRIBUTIONS', 'WELL_CONDITIONED', 'make_matrices', 'edge_case_matrices',
+           'make_warm_start', 'DEGENERATE_FAMILIES', 'make_degenerate_matrices']
 
 
 Generator = Callable[[int, torch.Generator], torch.Tensor]
@@ -19,7 +21,21 @@ Generator = Callable[[int, torch.Generator], torch.Tensor]
 def soa_view(t: torch.Tensor) -> torch.Tensor:
     """t's values ``(N, 3, 3)`` in structure-of-arrays layout: a new (3, 3, N)
     tensor permuted to (N, 3, 3), the matrix index fastest (the layout of a
-    solver's vectorised covariances, which the kernels load as plain vectors)."""
+    solver's vectorised covariances, which the kernels load as plain vectors).
+
+    Args:
+        t: ``(N, 3, 3)`` tensor, any dtype and device.
+
+    Returns:
+        A copy of t, its shape, dtype and device, with strides ``(1, 3 N, N)``.
+
+    Examples:
+        >>> from torchrot.testing import soa_view
+        >>> M = torch.randn(5, 3, 3)
+        >>> M_soa = soa_view(M)
+        >>> torch.equal(M_soa, M), M_soa.stride()
+        (True, (1, 15, 5))
+    """
     return t.permute(1, 2, 0).contiguous().permute(2, 0, 1)
 
 def tiled_view(t: torch.Tensor, tile: int) -> torch.Tensor:
@@ -27,13 +43,56 @@ def tiled_view(t: torch.Tensor, tile: int) -> torch.Tensor:
     tiles of ``tile`` matrices, each in structure of arrays (a new
     ``(N / tile, 3, 3, tile)`` tensor permuted; tile 8 is the paper authors'
     AVX layout). The kernels load tiles at least a SIMD block wide as plain
-    vectors and narrower ones in runs. N must be a multiple of ``tile``."""
+    vectors and narrower ones in runs.
+
+    Args:
+        t: ``(N, 3, 3)`` tensor, any dtype and device; N a multiple of ``tile``.
+        tile: matrices per tile, >= 1.
+
+    Returns:
+        A copy of t's values, shape ``(N / tile, tile, 3, 3)``, t's dtype and
+        device, strides ``(9 tile, 1, 3 tile, tile)``; ``.reshape(N, 3, 3)``
+        gives t back.
+
+    Raises:
+        RuntimeError: N is not a multiple of ``tile`` (from ``torch.reshape``:
+            no partial tile is padded).
+
+    Examples:
+        >>> from torchrot.testing import tiled_view
+        >>> M = torch.randn(16, 3, 3)
+        >>> M_tiled = tiled_view(M, 8)
+        >>> M_tiled.shape, M_tiled.stride(), torch.equal(M_tiled.reshape(16, 3, 3), M)
+        (torch.Size([2, 8, 3, 3]), (72, 1, 24, 8), True)
+        >>> tiled_view(torch.randn(10, 3, 3), 8)
+        Traceback (most recent call last):
+            ...
+        RuntimeError: shape '[-1, 8, 3, 3]' is invalid for input of size 90
+    """
     return t.reshape(-1, tile, 3, 3).permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
 
 def rotations(shape: int | tuple[int, ...], seed: int = 0, dtype: torch.dtype = torch.float64,
               max_angle: float = math.pi) -> torch.Tensor:
     """``(*shape, 3, 3)`` random rotations (angles up to ``max_angle``) from
-    seed ``seed``, in ``dtype``: :func:`random_rotations` in any batch shape."""
+    seed ``seed``, in ``dtype``: :func:`random_rotations` in any batch shape.
+
+    Args:
+        shape: the batch shape, an int or a tuple of ints.
+        seed: seed of the CPU generator; the same seed gives the same rotations.
+        dtype: the result's dtype (built in float64, then cast).
+        max_angle: largest rotation angle, radians.
+
+    Returns:
+        ``(*shape, 3, 3)`` rotations on the CPU.
+
+    Examples:
+        >>> from torchrot.testing import rotations
+        >>> R = rotations((2, 4), seed=0, dtype=torch.float32)
+        >>> R.shape, R.dtype, torch.allclose(R.mT @ R, torch.eye(3).expand(2, 4, 3, 3), atol=1e-6)
+        (torch.Size([2, 4, 3, 3]), torch.float32, True)
+        >>> torch.equal(R, rotations((2, 4), seed=0, dtype=torch.float32))
+        True
+    """
     shape = (shape,) if isinstance(shape, int) else tuple(shape)
     n = math.prod(shape)
     return random_rotations(n, torch.Generator().manual_seed(seed), max_angle).reshape(*shape, 3, 3).to(dtype)
@@ -41,9 +100,19 @@ def rotations(shape: int | tuple[int, ...], seed: int = 0, dtype: torch.dtype = 
 def random_rotations(
     n: int, gen: torch.Generator, max_angle: float = math.pi, concentration: float = 1.0
 ) -> torch.Tensor:
-    """``(n, 3, 3)`` rotations with uniform random axes and angles
+    """``(n, 3, 3)`` float64 rotations with uniform random axes and angles
     ``max_angle * u**concentration``, u uniform in [0, 1] (concentration > 1
-    crowds the angles towards 0, like the solver data of the paper's Fig. 5)."""
+    crowds the angles towards 0, like the solver data of the paper's Fig. 5),
+    drawn from the CPU generator ``gen``.
+
+    Examples:
+        >>> import math
+        >>> from torchrot.testing import random_rotations
+        >>> R = random_rotations(100, torch.Generator().manual_seed(0), max_angle=math.radians(10))
+        >>> angle = torch.arccos(((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1))  # tr R = 1 + 2 cos
+        >>> R.dtype, bool((angle <= math.radians(10) + 1e-6).all())
+        (torch.float64, True)
+    """
     axis = torch.randn(n, 3, generator=gen, dtype=torch.float64)
     axis = axis / axis.norm(dim=-1, keepdim=True)
     angle = torch.rand(n, generator=gen, dtype=torch.float64) ** concentration * max_angle
@@ -54,7 +123,20 @@ def registration_problem(batch: tuple[int, ...] = (), n: int = 40, seed: int = 0
     """Points ``x`` ``(*batch, n, 3)``, a known transform ``(R, t, s)`` (float64;
     s = 1 unless with_scale) and ``y = s R x + t``, plus Gaussian noise of
     standard deviation ``noise``; x and y are cast to ``dtype``. x is spread
-    anisotropically (3, 2, 1) around (1, 1, 1). Returns ``(x, y, (R, t, s))``."""
+    anisotropically (3, 2, 1) around (1, 1, 1). Deterministic in ``seed``.
+
+    Returns:
+        ``(x, y, (R, t, s))``: x, y ``(*batch, n, 3)`` in ``dtype``; R
+        ``(*batch, 3, 3)``, t ``(*batch, 3)`` and s ``(*batch)`` in float64; all on the CPU.
+
+    Examples:
+        >>> from torchrot.testing import registration_problem
+        >>> x, y, (R, t, s) = registration_problem(batch=(2,), n=10, seed=0)
+        >>> x.shape, R.shape, t.shape, s.shape
+        (torch.Size([2, 10, 3]), torch.Size([2, 3, 3]), torch.Size([2, 3]), torch.Size([2]))
+        >>> torch.allclose(y, s[:, None, None] * x @ R.mT + t[:, None, :])  # y_i = s R x_i + t
+        True
+    """
     gen = torch.Generator().manual_seed(seed)
     count = math.prod(batch)
     R = random_rotations(count, gen).reshape(*batch, 3, 3)
@@ -67,8 +149,17 @@ def registration_problem(batch: tuple[int, ...] = (), n: int = 40, seed: int = 0
     return x.to(dtype), y.to(dtype), (R, t, s)
 
 def random_spd(n: int, gen: torch.Generator, cond: float) -> torch.Tensor:
-    """``(n, 3, 3)`` symmetric positive definite stretches with condition number
-    ``cond``: eigenvalues 1, cond and one log-uniform between, random eigenbasis."""
+    """``(n, 3, 3)`` float64 symmetric positive definite stretches with
+    condition number ``cond``: eigenvalues 1, cond and one log-uniform
+    between, random eigenbasis, drawn from the CPU generator ``gen``.
+
+    Examples:
+        >>> from torchrot.testing import random_spd
+        >>> S = random_spd(4, torch.Generator().manual_seed(0), cond=1e3)
+        >>> eigenvalues = torch.linalg.eigvalsh(S)
+        >>> torch.allclose(S, S.mT), (eigenvalues[:, -1] / eigenvalues[:, 0]).round().tolist()
+        (True, [1000.0, 1000.0, 1000.0, 1000.0])
+    """
     Q = random_rotations(n, gen)
     log_mid = torch.rand(n, generator=gen, dtype=torch.float64) * math.log(cond)
     eig = torch.stack([torch.ones(n, dtype=torch.float64), torch.full((n,), float(cond)), log_mid.exp()], -1)
@@ -144,14 +235,49 @@ DISTRIBUTIONS: dict[str, Generator] = {
 WELL_CONDITIONED = ("warm", "rot60", "rot180", "rot180_exact", "uniform")
 
 def make_matrices(name: str, n: int, seed: int = 0, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-    """``(n, 3, 3)`` matrices of distribution ``name`` (see DISTRIBUTIONS)."""
+    """``(n, 3, 3)`` matrices of distribution ``name`` of :data:`DISTRIBUTIONS`.
+
+    Args:
+        name: a key of :data:`DISTRIBUTIONS` (``"warm"``, ``"gaussian"``, ...).
+        n: number of matrices.
+        seed: seed of the CPU generator; the same seed gives the same matrices.
+        dtype: the result's dtype: the matrices are built in float64, then cast.
+
+    Returns:
+        ``(n, 3, 3)`` tensor of ``dtype`` on the CPU.
+
+    Raises:
+        ValueError: ``name`` is not a key of :data:`DISTRIBUTIONS`.
+
+    Examples:
+        >>> from torchrot.testing import make_matrices
+        >>> M = make_matrices("rank2", 4, seed=0)
+        >>> M.shape, M.dtype, bool((torch.linalg.svdvals(M)[:, -1] < 1e-12).all())
+        (torch.Size([4, 3, 3]), torch.float64, True)
+        >>> make_matrices("warm", 4, dtype=torch.float32).dtype
+        torch.float32
+        >>> make_matrices("no_such_distribution", 4)
+        Traceback (most recent call last):
+            ...
+        ValueError: unknown distribution 'no_such_distribution'; known: [...]
+    """
     if name not in DISTRIBUTIONS:
         raise ValueError(f"unknown distribution {name!r}; known: {sorted(DISTRIBUTIONS)}")
     gen = torch.Generator().manual_seed(seed)
     return DISTRIBUTIONS[name](n, gen).to(dtype)
 
 def edge_case_matrices(dtype: torch.dtype = torch.float64) -> torch.Tensor:
-    """Hand-picked matrices where iterative methods break: ``(k, 3, 3)``."""
+    """Hand-picked matrices where iterative methods break: ``(k, 3, 3)`` in
+    ``dtype`` (built in float64, then cast), on the CPU: zero, +-I, repeated
+    and zero singular values, reflections, rotations by pi and near it,
+    extreme scales and float32 subnormals.
+
+    Examples:
+        >>> from torchrot.testing import edge_case_matrices
+        >>> M = edge_case_matrices(torch.float32)
+        >>> M.shape, M.dtype, bool(torchrot.fit_rotation(M).isfinite().all())
+        (torch.Size([17, 3, 3]), torch.float32, True)
+    """
     pi_x = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
     gen = torch.Generator().manual_seed(1234)
     axis = torch.randn(4, 3, generator=gen, dtype=torch.float64)
@@ -179,7 +305,22 @@ def make_warm_start(name: str, n: int, seed: int = 0, dtype: torch.dtype = torch
     """``(M, init)`` as a local-global solver sees them: ``init`` holds random
     "previous" rotations and ``M = init @ M0`` with M0 from distribution
     ``name``, so the answer is ``init @ R*(M0)``: close to init for the warm
-    distributions, where a warm-started one-step fit is accurate."""
+    distributions, where a warm-started one-step fit is accurate.
+
+    Returns:
+        ``(M, init)``, both ``(n, 3, 3)`` in ``dtype`` (built in float64), on the CPU.
+
+    Raises:
+        ValueError: ``name`` is not a key of :data:`DISTRIBUTIONS`.
+
+    Examples:
+        >>> from torchrot.testing import make_warm_start
+        >>> M, init = make_warm_start("warm", 8, seed=0)
+        >>> R = torchrot.fit_rotation(M, init, max_iter=1)  # one Cayley step from init
+        >>> R_best = torchrot.rotation_svd(M)
+        >>> bool(((R - R_best).norm(dim=(-2, -1)) < (init - R_best).norm(dim=(-2, -1))).all())
+        True
+    """
     M0 = make_matrices(name, n, seed, torch.float64)
     init = random_rotations(n, torch.Generator().manual_seed(seed + 7919))
     return (init @ M0).to(dtype), init.to(dtype)
@@ -221,7 +362,27 @@ DEGENERATE_FAMILIES: dict[str, Generator] = {
 }
 
 def make_degenerate_matrices(name: str, n: int, seed: int = 0, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-    """``(n, 3, 3)`` matrices of family ``name`` of DEGENERATE_FAMILIES."""
+    """``(n, 3, 3)`` matrices of family ``name`` of :data:`DEGENERATE_FAMILIES`.
+
+    Args:
+        name: a key of :data:`DEGENERATE_FAMILIES` (``"repeated_sigma"``, ...).
+        n: number of matrices.
+        seed: seed of the CPU generator; the same seed gives the same matrices.
+        dtype: the result's dtype: the matrices are built in float64, then cast.
+
+    Returns:
+        ``(n, 3, 3)`` tensor of ``dtype`` on the CPU.
+
+    Raises:
+        ValueError: ``name`` is not a key of :data:`DEGENERATE_FAMILIES`.
+
+    Examples:
+        >>> from torchrot.testing import make_degenerate_matrices
+        >>> M = make_degenerate_matrices("scaled_rotation", 3).requires_grad_()  # three equal singular values
+        >>> torchrot.fit_rotation(M).sum().backward()
+        >>> bool(M.grad.isfinite().all())
+        True
+    """
     if name not in DEGENERATE_FAMILIES:
         raise ValueError(f"unknown family {name!r}; known: {sorted(DEGENERATE_FAMILIES)}")
     gen = torch.Generator().manual_seed(seed)

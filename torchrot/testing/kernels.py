@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import contextlib
 import warnings
-from typing import Iterator
+from collections.abc import Iterator
 
 import torch
 
 from torchrot._constants import CPU_KERNELS
 
-__all__ = ['CPU_KERNELS', 'rounds_like_scalar', 'rounding_reference', 'cpu_kernel', 'available_cpu_kernels', 'generic_kernel']
+__all__ = ['CPU_KERNELS', 'rounds_like_scalar', 'rounding_reference', 'cpu_kernel', 'available_cpu_kernels',
+           'generic_kernel']
 
 
 def rounds_like_scalar(name: str) -> bool:
@@ -20,14 +21,32 @@ def rounds_like_scalar(name: str) -> bool:
     ``a * b + c`` once, as the scalar kernel does. False only for x86-64's
     "default" kernel, the one for CPUs without AVX2 and FMA
     (csrc/kernel/mul_add.h); it meets the same accuracy criteria and is
-    bit-identical across its own batch sizes, layouts and threads."""
+    bit-identical across its own batch sizes, layouts and threads.
+
+    Raises:
+        ValueError: ``name`` is not one of CPU_KERNELS.
+
+    Examples:
+        >>> from torchrot.testing import rounds_like_scalar
+        >>> rounds_like_scalar("scalar")
+        True
+    """
     with cpu_kernel(name):
         return bool(torch.ops.torchrot._cpu_kernel_fuses_multiply_add())
 
 def rounding_reference(name: str) -> str:
     """The kernel whose results CPU kernel ``name`` reproduces bit for bit:
     "scalar", or ``name`` itself where it rounds differently
-    (:func:`rounds_like_scalar`)."""
+    (:func:`rounds_like_scalar`).
+
+    Raises:
+        ValueError: ``name`` is not one of CPU_KERNELS.
+
+    Examples:
+        >>> from torchrot.testing import rounding_reference
+        >>> rounding_reference("scalar")
+        'scalar'
+    """
     return "scalar" if rounds_like_scalar(name) else name
 
 @contextlib.contextmanager
@@ -41,7 +60,17 @@ def cpu_kernel(name: str | None) -> Iterator[str]:
 
     The process-wide choice is the environment variable
     TORCHROT_CPU_CAPABILITY, read once when torchrot is imported.
-    Raises ValueError for an unknown name.
+
+    Raises:
+        ValueError: ``name`` is not one of CPU_KERNELS.
+
+    Examples:
+        >>> from torchrot.testing import cpu_kernel
+        >>> M = torch.randn(8, 3, 3)
+        >>> with cpu_kernel("scalar") as used:
+        ...     R_scalar = torchrot.fit_rotation(M)
+        >>> used, torch.allclose(R_scalar, torchrot.fit_rotation(M), atol=1e-5)
+        ('scalar', True)
     """
     previous = torch.ops.torchrot._set_cpu_kernel(name or "")
     try:
@@ -52,7 +81,14 @@ def cpu_kernel(name: str | None) -> Iterator[str]:
 def available_cpu_kernels() -> tuple[str, ...]:
     """The CPU kernel objects of CPU_KERNELS that this machine runs: those its
     build has (scalar and default everywhere, AVX2 and AVX-512 on x86-64) up
-    to the highest its CPU supports."""
+    to the highest its CPU supports, lowest first (a tuple of str).
+
+    Examples:
+        >>> from torchrot.testing import CPU_KERNELS, available_cpu_kernels
+        >>> kernels = available_cpu_kernels()
+        >>> kernels[0], set(kernels) <= set(CPU_KERNELS)
+        ('scalar', True)
+    """
     found = []
     for name in CPU_KERNELS:
         with cpu_kernel(name) as used:
@@ -68,6 +104,14 @@ def generic_kernel() -> Iterator[None]:
     both paths on any machine. Process-wide while it lasts (it registers
     CPU kernels that shadow the C++ ones; leaving restores them): not for
     multi-threaded use.
+
+    Examples:
+        >>> from torchrot.testing import generic_kernel
+        >>> M = torch.randn(8, 3, 3, dtype=torch.float64)
+        >>> with generic_kernel():
+        ...     R_generic = torchrot.fit_rotation(M)
+        >>> torch.allclose(R_generic, torchrot.fit_rotation(M))
+        True
     """
     from torchrot._device_kernels import GENERIC_KERNELS
 
@@ -75,7 +119,8 @@ def generic_kernel() -> Iterator[None]:
     try:
         with warnings.catch_warnings():
             # "Overriding a previously registered kernel": that is the point.
-            warnings.filterwarnings("ignore", message=".*(Overriding a previously registered kernel|operators may also be overridden)")
+            warnings.filterwarnings(
+                "ignore", message=".*(Overriding a previously registered kernel|operators may also be overridden)")
             for name, kernel in GENERIC_KERNELS.items():
                 library.impl(name, kernel, "CPU")
         yield

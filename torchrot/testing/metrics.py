@@ -10,7 +10,13 @@ __all__ = ['dtype_id', 'bits', 'objective', 'rotation_errors', 'CRITERIA', 'cond
 
 
 def dtype_id(dtype: torch.dtype) -> str:
-    """``"float32"`` for torch.float32: test ids and messages."""
+    """``"float32"`` for torch.float32: test ids and messages.
+
+    Examples:
+        >>> from torchrot.testing import dtype_id
+        >>> dtype_id(torch.bfloat16)
+        'bfloat16'
+    """
     return str(dtype).removeprefix("torch.")
 
 _INTEGER_VIEW = {torch.float32: torch.int32, torch.float64: torch.int64, torch.float16: torch.int16,
@@ -19,22 +25,62 @@ _INTEGER_VIEW = {torch.float32: torch.int32, torch.float64: torch.int64, torch.f
 def bits(t: torch.Tensor) -> torch.Tensor:
     """The bits of a float tensor as integers (contiguous), for bit-for-bit
     comparisons in which NaN payloads and signed zeros count; other dtypes
-    are returned as they are."""
+    are returned as they are.
+
+    Returns:
+        t's bits, its shape: int32 for float32, int64 for float64, int16 for
+        float16 and bfloat16.
+
+    Examples:
+        >>> from torchrot.testing import bits
+        >>> zeros = torch.tensor([0.0, -0.0])
+        >>> torch.equal(zeros[0], zeros[1]), torch.equal(bits(zeros[0]), bits(zeros[1]))
+        (True, False)
+        >>> bits(zeros).dtype
+        torch.int32
+    """
     t = t.contiguous()
     return t.view(_INTEGER_VIEW[t.dtype]) if t.dtype in _INTEGER_VIEW else t
 
 def objective(R: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
-    """tr(R^T M) per matrix, in float64."""
+    """tr(R^T M) per matrix, computed and returned in float64.
+
+    Args:
+        R, M: ``(..., 3, 3)`` tensors, broadcastable against each other.
+
+    Returns:
+        float64 tensor of the broadcast batch shape ``(...)``.
+
+    Examples:
+        >>> from torchrot.testing import objective
+        >>> objective(torch.eye(3), torch.diag(torch.tensor([3.0, 2.0, 1.0])))
+        tensor(6., dtype=torch.float64)
+    """
     return (R.double() * M.double()).sum((-2, -1))
 
 def rotation_errors(R: torch.Tensor, M: torch.Tensor) -> dict[str, torch.Tensor]:
     """Per-matrix accuracy of rotations R fitted to M, against float64 SVD.
 
-    Returns float64 tensors of M's batch shape:
-      orthonormality: max |R^T R - I|;
-      det: |det R - 1|;
-      shortfall: (tr(R*^T M) - tr(R^T M)) / |M|_F  (0 for M = 0);
-      distance: |R - R*|_F (meaningful only where R* is unique).
+    Args:
+        R: ``(..., 3, 3)`` fitted rotations, any float dtype.
+        M: ``(..., 3, 3)`` the matrices they were fitted to, R's batch shape.
+
+    Returns:
+        dict[str, torch.Tensor]: float64 tensors of M's batch shape ``(...)``,
+        by key: ``"orthonormality"``, ``max |R^T R - I|`` (largest entry);
+        ``"det"``, ``|det R - 1|``; ``"shortfall"``, the relative objective
+        shortfall ``(tr(R*^T M) - tr(R^T M)) / |M|_F`` (0 for M = 0), with
+        R* the float64 SVD's rotation; ``"distance"``, ``|R - R*|_F``
+        (meaningful only where R* is unique).
+
+    Examples:
+        >>> from torchrot.testing import CRITERIA, make_matrices, rotation_errors
+        >>> M = make_matrices("gaussian", 100, dtype=torch.float32)
+        >>> errors = rotation_errors(torchrot.fit_rotation(M), M)
+        >>> sorted(errors), errors["det"].shape, errors["det"].dtype
+        (['det', 'distance', 'orthonormality', 'shortfall'], torch.Size([100]), torch.float64)
+        >>> all(bool(errors[key].max() <= limit) for key, limit in CRITERIA[torch.float32].items())
+        True
     """
     Rd, Md = R.double(), M.double()
     eye = torch.eye(3, dtype=torch.float64)
@@ -57,10 +103,22 @@ CRITERIA = {
 
 def conditioning(M: torch.Tensor) -> torch.Tensor:
     """Per matrix, how much rounding can move the fitted rotation:
-    |M|_F / min(s_i + s_j) over the signed singular values s of M (the
+    ``|M|_F / min(s_i + s_j)`` over the signed singular values s of M (the
     eigenvalues of the optimality system, csrc/kernel/rotation_gradient.h;
     Inf where the maximiser is not unique). A fit at working precision is
-    within about eps times this of the exact rotation, in float64."""
+    within about eps times this of the exact rotation, in float64.
+
+    Args:
+        M: ``(..., 3, 3)`` any float dtype (computed in float64).
+
+    Returns:
+        float64 tensor of M's batch shape ``(...)``: positive, or Inf.
+
+    Examples:
+        >>> from torchrot.testing import conditioning
+        >>> conditioning(torch.stack([torch.eye(3), torch.diag(torch.tensor([1.0, 1.0, -1.0]))]))
+        tensor([0.8660,    inf], dtype=torch.float64)
+    """
     M = M.double()
     s = torch.linalg.svdvals(M)
     s[..., 2] = s[..., 2] * torch.linalg.det(M).sign()
