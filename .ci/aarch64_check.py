@@ -37,8 +37,16 @@ import torch
 
 import torchrot
 from torchrot.reference import GRADIENT_EPS, fit_rotation_backward_reference, rotation_svd
-from torchrot.testing import (CPU_KERNELS, WELL_CONDITIONED, bits, cpu_kernel, make_matrices, random_rotations,
-                              rotations, rounding_reference)
+from torchrot.testing import (
+    CPU_KERNELS,
+    WELL_CONDITIONED,
+    bits,
+    cpu_kernel,
+    make_matrices,
+    random_rotations,
+    rotations,
+    rounding_reference,
+)
 
 X86_64 = platform.machine().lower() in ("x86_64", "amd64")
 DTYPES = (torch.float32, torch.float64)

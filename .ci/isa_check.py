@@ -23,8 +23,14 @@ import sys
 import torch
 
 import torchrot
-from torchrot.testing import (DISTRIBUTIONS, cpu_kernel, edge_case_matrices, make_matrices, random_rotations,
-                               rounding_reference)
+from torchrot.testing import (
+    DISTRIBUTIONS,
+    cpu_kernel,
+    edge_case_matrices,
+    make_matrices,
+    random_rotations,
+    rounding_reference,
+)
 
 ISAS = ("scalar", "default", "avx2", "avx512")
 INT_VIEW = {torch.float32: torch.int32, torch.float64: torch.int64, torch.int32: torch.int32,

@@ -76,11 +76,13 @@ if args["check"] in ("contiguous", "float64"):
     size = M.numel() * M.element_size()
     report["input_bytes"] = size
     R, peak, sec = measure(lambda: torchrot.fit_rotation(M))
-    report["fit"] = {"peak_over_input": peak, "seconds": sec, "ok": sample_matches(M, R) and bool(torch.isfinite(R[-1]).all())}
+    report["fit"] = {"peak_over_input": peak, "seconds": sec,
+                     "ok": sample_matches(M, R) and bool(torch.isfinite(R[-1]).all())}
     if args["check"] == "contiguous":
         G = R  # any incoming gradient of R's shape
         D, peak, sec = measure(lambda: torch.ops.torchrot.fit_rotation_backward(G, R, M, 1e-6))
-        ref = lambda m: torch.ops.torchrot.fit_rotation_backward(G[:m.shape[0]].contiguous(), R[:m.shape[0]].contiguous(), m, 1e-6)
+        ref = lambda m: torch.ops.torchrot.fit_rotation_backward(G[:m.shape[0]].contiguous(),
+                                                                 R[:m.shape[0]].contiguous(), m, 1e-6)
         report["backward"] = {"peak_over_input": peak, "seconds": sec,
                               "ok": torch.equal(D[:17], ref(M[:17].contiguous())) and bool(torch.isfinite(D).all())}
         del D, G

@@ -77,9 +77,11 @@ def main() -> None:
         M_blocks, R_authors = blocks(M), blocks(init)
         kernel(M_blocks.data_ptr(), R_authors.data_ptr(), groups)
         R_authors = R_authors.transpose(1, 2).reshape(n, 3, 3)
-        for name, R in (("authors' one-step", R_authors), ("torchrot one-step", torchrot.fit_rotation(M, init, max_iter=1))):
+        R_torchrot = torchrot.fit_rotation(M, init, max_iter=1)
+        for name, R in (("authors' one-step", R_authors), ("torchrot one-step", R_torchrot)):
             error = (R.double() - exact).abs().amax((-2, -1))
-            print(f"{name}: max |R - R*| {error.max().item():.1e}, off by > 1e-3: {(error > 1e-3).float().mean().item():.2%}")
+            print(f"{name}: max |R - R*| {error.max().item():.1e}, "
+                  f"off by > 1e-3: {(error > 1e-3).float().mean().item():.2%}")
 
         M_blocks, R_blocks = blocks(M), blocks(init)
         M_tiles, R_tiles = tiled_view(M, TILE), tiled_view(init, TILE)  # torchrot's views of the same layout
@@ -95,8 +97,10 @@ def main() -> None:
         fit, check = torchrot.fit_rotation, torch.ops.torchrot_bench.count_bad_warm_starts
         calls = {
             "copy_ of M": lambda: buffer.copy_(M),
-            "authors' one-step AVX, their layout, in place": lambda: kernel(M_blocks.data_ptr(), R_blocks.data_ptr(), groups),
-            "torchrot one-step, the same layout (tiled views), in place": lambda: fit(M_tiles, R_tiles, max_iter=1, out=R_tiles),
+            "authors' one-step AVX, their layout, in place":
+                lambda: kernel(M_blocks.data_ptr(), R_blocks.data_ptr(), groups),
+            "torchrot one-step, the same layout (tiled views), in place":
+                lambda: fit(M_tiles, R_tiles, max_iter=1, out=R_tiles),
             # An out= call first checks every warm start, so that one that raises leaves out as it was.
             "of which: torchrot's check of the warm starts before writing": lambda: check(R_tiles),
             "authors' one-step incl. shuffling (N, 3, 3) in and out": authors_with_shuffles,

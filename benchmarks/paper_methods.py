@@ -1,9 +1,9 @@
 """The paper's comparison methods (torchrot.methods) beside torch.linalg.svd, the
-memory copy and torchrot, timed in one run on the same data: the README table.
+memory copy and torchrot, timed in one run on the same data (docs/performance.md).
 
     python benchmarks/paper_methods.py                  # N = 1e5, float32, 1 thread
     python benchmarks/paper_methods.py --n 1e6 --data warm rot60 uniform --json out.json
-    python benchmarks/paper_methods.py --wide           # the README table
+    python benchmarks/paper_methods.py --wide           # and one line per method
 
 Rows come from ``torchrot.bench.cases.run_checked_case`` (medians of ``--repeats``
 ``blocked_autorange`` medians; accuracy against float64 SVD on every matrix;
@@ -55,7 +55,7 @@ def table(rows) -> str:
 
 def wide_table(rows) -> str:
     """One line per method, per data set: ns/matrix, max error, failures (|R - R*|_F > 1e-3
-    or non-finite: count and share); the README's form."""
+    or non-finite: count and share); one line per method with --wide."""
     data_sets = list(dict.fromkeys(r.data for r in rows))
     by_method: dict[str, dict] = {}
     for r in rows:
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=positive_int, default=5)
     parser.add_argument("--min-run-time", type=float, default=0.1)
     parser.add_argument("--json", help="also write the rows and the machine to this JSON file")
-    parser.add_argument("--wide", action="store_true", help="also print one line per method (the README table)")
+    parser.add_argument("--wide", action="store_true", help="also print one line per method")
     args = parser.parse_args(argv)
     print(f"machine: {machine_info()} (shared machine: medians of runs)")
     before = load_average()

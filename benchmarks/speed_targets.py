@@ -167,12 +167,15 @@ def main() -> None:
     print("\n| target | measured | holds |\n|---|---|---|")
     for name, value, bound in rows:
         print(f"| {name} | {value:.2f}x | {'yes' if value <= bound else '**no**'} |")
-    print(f"| converged exact: 0 failures | {converged_failures} | {'yes' if converged_failures == 0 else '**no**'} |")
+    print(f"| converged exact: 0 failures | {converged_failures} | "
+          f"{'yes' if converged_failures == 0 else '**no**'} |")
     speedup = cold[SVD] / cold[COLD]
-    print(f"| converged cold, uniform, N = 1e5, >= 100x SVD | {speedup:.1f}x | {'yes' if speedup >= 100 else '**no**'} |")
+    print(f"| converged cold, uniform, N = 1e5, >= 100x SVD | {speedup:.1f}x | "
+          f"{'yes' if speedup >= 100 else '**no**'} |")
     for r in layer:
         if r["batch"] == 64:
-            print(f"| nn.RotationFit fwd+bwd, batch 64, <= 60 us and <= 0.15x SVD autograd | {r['torchrot_us']:.0f} us, "
+            print(f"| nn.RotationFit fwd+bwd, batch 64, <= 60 us and <= 0.15x SVD autograd | "
+                  f"{r['torchrot_us']:.0f} us, "
                   f"{r['torchrot_vs_svd']:.3f}x (a clone in its place: {r['autograd_floor_us']:.0f} us) | "
                   f"{'yes' if r['torchrot_us'] <= 60 and r['torchrot_vs_svd'] <= 0.15 else '**no**'} |")
         if r["batch"] == 100_000:

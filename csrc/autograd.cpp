@@ -180,9 +180,10 @@ void fit_rotation_out_inplace(c10::DispatchKeySet keys, const at::Tensor& M, con
 
 // fit_rotation_info's outputs carry no gradient (R, iterations and status
 // are diagnostics): below autograd on every call, so they never require grad.
-std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_autograd(
-    c10::DispatchKeySet keys, const at::Tensor& M, const std::optional<at::Tensor>& init,
-    std::optional<int64_t> max_iter, c10::string_view variant) {
+std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_autograd(c10::DispatchKeySet keys, const at::Tensor& M,
+                                                                          const std::optional<at::Tensor>& init,
+                                                                          std::optional<int64_t> max_iter,
+                                                                          c10::string_view variant) {
   static const auto op = find_operator<FitRotationInfoSignature>("torchrot::fit_rotation_info");
   at::AutoDispatchBelowADInplaceOrView below;
   return op.redispatch(keys & c10::after_ADInplaceOrView_keyset, M, init, max_iter, variant);
@@ -197,8 +198,6 @@ TORCH_LIBRARY_IMPL(torchrot, Autograd, m) {
   m.impl("fit_rotation_info", TORCH_FN(fit_rotation_info_autograd));
 }
 
-TORCH_LIBRARY_IMPL(torchrot, ADInplaceOrView, m) {
-  m.impl("fit_rotation_out", TORCH_FN(fit_rotation_out_inplace));
-}
+TORCH_LIBRARY_IMPL(torchrot, ADInplaceOrView, m) { m.impl("fit_rotation_out", TORCH_FN(fit_rotation_out_inplace)); }
 
 }  // namespace torchrot

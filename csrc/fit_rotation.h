@@ -92,8 +92,7 @@ struct MatrixBatch {
 // optional per-matrix diagnostics. Returns the number of matrices whose warm
 // start was not a rotation.
 int64_t fit_rotation_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& M, const MatrixBatch* init,
-                         const MatrixBatch& out, const FitOptions& options, int32_t* iterations,
-                         uint8_t* status);
+                         const MatrixBatch& out, const FitOptions& options, int32_t* iterations, uint8_t* status);
 
 // What the check the fit applies finds in n warm starts.
 struct WarmStartCount {

@@ -33,7 +33,8 @@ inline constexpr Message kDeviceLike{"DEVICE_LIKE", "{op}: {name} must be on {re
 inline constexpr Message kDtypeLike{"DTYPE_LIKE", "{op}: {name} must have {ref}'s dtype ({dtype}), got {got}"};
 inline constexpr Message kMaxIterType{"MAX_ITER_TYPE", "{op}: max_iter must be None or an int >= 1, got {value}"};
 inline constexpr Message kMaxIterRange{
-    "MAX_ITER_RANGE", "{op}: max_iter must be None (iterate to convergence) or an int >= 1 and <= {max_iter}, got {value}"};
+    "MAX_ITER_RANGE",
+    "{op}: max_iter must be None (iterate to convergence) or an int >= 1 and <= {max_iter}, got {value}"};
 inline constexpr Message kVariantType{"VARIANT_TYPE", "{op}: variant must be a str, got {type}"};
 inline constexpr Message kVariantValue{"VARIANT_VALUE", "{op}: variant must be one of {variants}, got '{value}'"};
 inline constexpr Message kInitBroadcast{"INIT_BROADCAST",
@@ -66,10 +67,10 @@ inline constexpr Message kBackwardBroadcast{"BACKWARD_BROADCAST",
 inline constexpr Message kCpuKernel{"CPU_KERNEL", "{what} must be one of {cpu_kernels}; got '{value}'"};
 
 inline constexpr Message kAll[] = {
-    kNotATensor,   kMatrixShape, kMatrixDtype,     kDeviceLike,       kDtypeLike,    kMaxIterType,
-    kMaxIterRange, kVariantType, kVariantValue,    kInitBroadcast,    kInitNotRotations, kOutShape,
-    kOutOverlap,   kOutAutograd, kOutInference,    kGradientEpsType,  kGradientEpsRange, kGradShape,
-    kBackwardBroadcast, kCpuKernel,
+    kNotATensor,       kMatrixShape,      kMatrixDtype, kDeviceLike,        kDtypeLike,
+    kMaxIterType,      kMaxIterRange,     kVariantType, kVariantValue,      kInitBroadcast,
+    kInitNotRotations, kOutShape,         kOutOverlap,  kOutAutograd,       kOutInference,
+    kGradientEpsType,  kGradientEpsRange, kGradShape,   kBackwardBroadcast, kCpuKernel,
 };
 
 // `message` with its static fields and the given ones filled in (a field

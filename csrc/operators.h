@@ -22,8 +22,10 @@ using FitRotationSignature = at::Tensor(const at::Tensor&, const std::optional<a
 using FitRotationBackwardSignature = at::Tensor(const at::Tensor&, const at::Tensor&, const at::Tensor&, double);
 using FitRotationOutSignature = void(const at::Tensor&, const std::optional<at::Tensor>&, std::optional<int64_t>,
                                      c10::string_view, const at::Tensor&);
-using FitRotationInfoSignature = std::tuple<at::Tensor, at::Tensor, at::Tensor>(
-    const at::Tensor&, const std::optional<at::Tensor>&, std::optional<int64_t>, c10::string_view);
+using FitRotationInfoSignature = std::tuple<at::Tensor, at::Tensor, at::Tensor>(const at::Tensor&,
+                                                                                const std::optional<at::Tensor>&,
+                                                                                std::optional<int64_t>,
+                                                                                c10::string_view);
 
 // The operator `name` ("torchrot::fit_rotation", ...), typed; throws if it
 // is not registered or its schema does not match Signature. Callers keep

@@ -38,7 +38,7 @@ def variant(request) -> str:
     return request.param
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _cached_matrices(name: str, n: int, seed: int, dtype: torch.dtype) -> torch.Tensor:
     return make_matrices(name, n, seed, dtype)
 

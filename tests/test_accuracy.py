@@ -16,11 +16,11 @@ import torchrot
 from torchrot._constants import CONVERGED_CAP, MAX_ESCAPES
 from torchrot.reference import cayley_rotation, fit_rotation_reference
 from torchrot.testing import (
-    conditioning,
-    dtype_id,
     CRITERIA,
     DISTRIBUTIONS,
     WELL_CONDITIONED,
+    conditioning,
+    dtype_id,
     edge_case_matrices,
     random_rotations,
     rotation_errors,
@@ -482,7 +482,8 @@ def test_singular_newton_step_is_not_convergence():
     kernel and in the generic path alike; with a step limit the lane stops there (status 0)."""
     M = torch.tensor([NEWTON_WRONG_MAXIMUM], dtype=torch.float64)
     init = torch.tensor([NEWTON_SINGULAR_START], dtype=torch.float64)
-    for fit in (torchrot.fit_rotation_info, lambda M, init, **kw: fit_rotation_reference(M, init, return_info=True, **kw)):
+    reference = lambda M, init, **kw: fit_rotation_reference(M, init, return_info=True, **kw)
+    for fit in (torchrot.fit_rotation_info, reference):
         _, iterations, status = fit(M, init, variant="newton")
         assert status.tolist() == [1]
         _, iterations, status = fit(M, init, variant="newton", max_iter=5)

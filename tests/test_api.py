@@ -370,7 +370,9 @@ def test_status_codes_are_one_enum():
     assert {s.name: int(s) for s in torchrot.FitStatus} == {"CAYLEY": 0, "FALLBACK": 1, "BAD_INIT": 2, "NON_FINITE": 3}
     M = make_matrices("rank1", 64, 46, torch.float64)
     M[5, 0, 0] = float("nan")
-    for info in (torchrot.fit_rotation_info(M), torchrot.FitInfo(*torchrot.fit_rotation_reference(M, return_info=True))):
+    kernel = torchrot.fit_rotation_info(M)
+    reference = torchrot.FitInfo(*torchrot.fit_rotation_reference(M, return_info=True))
+    for info in (kernel, reference):
         assert info.status[5] == torchrot.FitStatus.NON_FINITE
         assert (info.status == torchrot.FitStatus.FALLBACK).any()  # rank 1: no isolated maximum
         assert set(info.status.unique().tolist()) <= {int(s) for s in torchrot.FitStatus}

@@ -131,7 +131,7 @@ def test_arap_session_energy_monotone_and_handles_exact():
     state = run_arap_session(solver, script, 3, energies=energies)
     tolerance = 1e-10 * max(e for *_, e in energies)  # rounding of the energy evaluation
     previous = None
-    for frame, iteration, after_local, after_global in energies:
+    for _frame, iteration, after_local, after_global in energies:
         if previous is not None:
             assert after_local <= previous + tolerance  # local step: same positions, better rotations
         if iteration > 0:  # (the first global step of a frame moves the handles: a new problem)

@@ -15,20 +15,19 @@ import torch
 from torch.autograd import forward_ad
 from torch.func import grad, jacfwd, jacrev, jvp, vmap
 
-from torchrot._constants import CPU_KERNELS
 import torchrot
-from torchrot._constants import GRADIENT_EPS
+from torchrot._constants import CPU_KERNELS, GRADIENT_EPS
 from torchrot._torch_private import below_autograd
 from torchrot.reference import fit_rotation_backward_reference
 from torchrot.testing import (
-    dtype_id,
-    cpu_kernel,
-    rounding_reference,
     DEGENERATE_FAMILIES,
+    cpu_kernel,
+    dtype_id,
     make_degenerate_matrices,
     make_matrices,
     make_warm_start,
     random_rotations,
+    rounding_reference,
     soa_view,
     tiled_view,
 )
@@ -491,7 +490,7 @@ def test_operator_calls_run_no_python_unless_a_transform_or_tangent_needs_it():
 
     Mg = M.clone().requires_grad_()
     for init_in in (init, init.clone().requires_grad_()):
-        result, python = _torchrot_python_calls(lambda: op.fit_rotation(Mg, init_in))
+        result, python = _torchrot_python_calls(lambda init_in=init_in: op.fit_rotation(Mg, init_in))
         assert python == [] and "FitRotationAutograd" in result.grad_fn.name() and torch.equal(result.detach(), R)
         (g,) = torch.autograd.grad(result, Mg, G)
         assert torch.equal(g, tangent)

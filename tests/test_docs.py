@@ -16,12 +16,6 @@ blocks of other languages (``bash``, ``none``, ...) are not run. A failure
 names the file and the line: the block is compiled with the file's own line
 numbers, so the traceback points into the Markdown file.
 
-README.md: blocks listed in README_KNOWN_FAILURES (keyed by a piece of
-their text) are expected to fail as written (strict xfail: one that starts
-to pass fails the test, so the entry goes with the fix); blocks listed in
-README_NOT_RUN are skipped (too slow for the suite); an entry that matches
-no block fails ``test_known_failures_are_current``.
-
 Sphinx is not needed: the pages are read as Markdown. The docstrings'
 ``>>>`` examples are run by ``.ci/docs`` (``sphinx -b doctest``).
 """
@@ -43,18 +37,6 @@ import torch
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 PYTHON = {"python", "py", "python3"}
-
-# README.md blocks that fail as written (fragments), keyed by text they contain.
-README_KNOWN_FAILURES = {
-    "index_add_(2, edge_vertex": "a fragment without imports or data: torch, V, edge_vertex, w, y_e and x_e are "
-                                 "not defined (NameError)",
-    "M = net(x).view(-1, 3, 3)": "a fragment: net, x and R_target are not defined (NameError)",
-}
-# README.md blocks not run here: too slow for the suite (seconds at most per block).
-README_NOT_RUN = {
-    "run_arap_session(solver, script": "a 57,346-vertex ARAP session of 40 frames (it passes, in tens of seconds); "
-                                       "docs/applications.md runs the same calls on a small mesh",
-}
 
 _FENCE = re.compile(r"^(?P<indent> *)(?P<fence>`{3,}|~{3,})(?P<info>.*)$")
 
@@ -111,24 +93,8 @@ def _all_blocks() -> list[Block]:
     return [block for page in PAGES for block in code_blocks(page)]
 
 
-def _known(block: Block, table: dict[str, str]) -> str | None:
-    if block.path.name != "README.md" or block.path.parent != ROOT:
-        return None
-    return next((reason for key, reason in table.items() if key in block.code), None)
-
-
 def _params():
-    params = []
-    for block in _all_blocks():
-        marks = []
-        failing = _known(block, README_KNOWN_FAILURES)
-        if failing:
-            marks.append(pytest.mark.xfail(reason=f"{block.where}: {failing}", strict=True))
-        slow = _known(block, README_NOT_RUN)
-        if slow:
-            marks.append(pytest.mark.skip(reason=f"{block.where}: {slow}"))
-        params.append(pytest.param(block, id=block.where, marks=marks))
-    return params
+    return [pytest.param(block, id=block.where) for block in _all_blocks()]
 
 
 @functools.cache
@@ -191,15 +157,6 @@ def test_code_block_runs(block: Block) -> None:
             run_block(block)
     finally:
         torch.set_num_threads(threads)
-
-
-def test_known_failures_are_current() -> None:
-    readme = [block.code for block in code_blocks(ROOT / "README.md")]
-    for table in (README_KNOWN_FAILURES, README_NOT_RUN):
-        for key in table:
-            assert any(key in code for code in readme), (
-                f"README.md has no Python block containing {key!r} any more: remove its entry from "
-                f"tests/test_docs.py")
 
 
 def test_pages_have_code_blocks() -> None:

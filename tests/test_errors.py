@@ -272,7 +272,8 @@ def test_wrapper_reports_the_first_bad_argument_as_the_operator_does():
     bad_M = torch.randn(4, 4)
     for kwargs in ({"gradient_eps": -1.0}, {"max_iter": 0, "gradient_eps": -1.0}, {"variant": "x"}):
         args = (bad_M, None, kwargs.get("max_iter"), kwargs.get("variant", "newton"), kwargs.get("gradient_eps", 1e-6))
-        assert _error(lambda: torchrot.fit_rotation(bad_M, **kwargs)) == _error(lambda: op.fit_rotation(*args))
+        assert _error(lambda kwargs=kwargs: torchrot.fit_rotation(bad_M, **kwargs)) == _error(
+            lambda args=args: op.fit_rotation(*args))
     out = torch.empty(4, 3, 3)
     assert _error(lambda: torchrot.fit_rotation(M, variant="x", gradient_eps=-1.0, out=out)) == _error(
         lambda: op.fit_rotation_out(M, None, None, "x", out))

@@ -46,8 +46,8 @@ import torch
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from torchrot._constants import CPU_KERNELS, VARIANTS
 import torchrot
+from torchrot._constants import CPU_KERNELS, VARIANTS
 from torchrot.reference import quaternion_rotation, rotation_svd
 from torchrot.testing import CRITERIA, DISTRIBUTIONS, bits, cpu_kernel, dtype_id, random_rotations, rounds_like_scalar
 

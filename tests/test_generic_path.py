@@ -154,6 +154,7 @@ def test_backward_float32_accuracy(dtype):
 # ---------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("max_iter", [1, 3])
 def test_one_step_compiles_without_graph_break(max_iter):
     """max_iter <= FULL_STEPS_MAX_ITER: one masked pass, compiles quickly."""
@@ -195,6 +196,7 @@ def _converged_mix():
     return M, init
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("start", ["warm", "cold"])
 def test_converged_compiled_as_accelerators_run_it(start, monkeypatch, assert_meets_criteria):
     """COMPILED_DEVICE_TYPES (CUDA, XPU) run _fit_core compiled with

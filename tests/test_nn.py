@@ -14,7 +14,6 @@ import torch.multiprocessing as mp
 from torch import nn
 
 import torchrot
-from torchrot._constants import GRADIENT_EPS
 from torchrot.nn import RigidRegistration, RotationFit
 from torchrot.testing import make_matrices, random_rotations
 
@@ -266,6 +265,7 @@ def ddp_results(tmp_path_factory):
     return [torch.load(f"{result_file}.{rank}") for rank in range(WORLD)]
 
 
+@pytest.mark.slow  # spawns 2 processes (~5 s)
 def test_ddp_forward(ddp_results):
     model = _make_model()
     for rank, result in enumerate(ddp_results):
@@ -273,6 +273,7 @@ def test_ddp_forward(ddp_results):
         assert torch.equal(result["R"], model(inputs).detach())
 
 
+@pytest.mark.slow  # spawns 2 processes (~5 s)
 def test_ddp_gradients_are_averaged(ddp_results):
     local = []
     for rank in range(WORLD):

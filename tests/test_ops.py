@@ -10,7 +10,13 @@ import torch
 import torchrot
 from torchrot._constants import GRADIENT_EPS
 from torchrot.testing import (
-    WELL_CONDITIONED, make_matrices, make_warm_start, rotation_svd, rotations, soa_view, tiled_view,
+    WELL_CONDITIONED,
+    make_matrices,
+    make_warm_start,
+    rotation_svd,
+    rotations,
+    soa_view,
+    tiled_view,
 )
 
 op = torch.ops.torchrot
@@ -204,9 +210,11 @@ def test_compile_keeps_result_layout(layout):
     M, init = view(M), view(init)
     torch._dynamo.reset()
     with torch._inductor.config.patch(fx_graph_cache=False):
+        def fit_with(max_iter):  # a closure over this iteration's max_iter
+            return lambda m, r: torchrot.fit_rotation(m, r, max_iter=max_iter)
+
         for max_iter in (1, None):
-            fit = torch.compile(lambda m, r: torchrot.fit_rotation(m, r, max_iter=max_iter), backend="inductor",
-                                fullgraph=True, dynamic=True)
+            fit = torch.compile(fit_with(max_iter), backend="inductor", fullgraph=True, dynamic=True)
             got, expected = fit(M, init), torchrot.fit_rotation(M, init, max_iter=max_iter)
             assert torch.equal(got, expected) and got.stride() == expected.stride() == M.stride()
 

@@ -230,7 +230,8 @@ def test_init_is_forwarded_as_warm_start(monkeypatch):
     warm = torchrot.rigid_registration(x, y, init=R)
     assert seen and seen[-1] is R
     assert_close(warm.R, cold.R, 1e-12, "R")
-    with pytest.raises(ValueError, match=r"init must have shape \(\.\.\., 3, 3\) broadcastable to the batch shape \[8\]"):
+    with pytest.raises(ValueError,
+                       match=r"init must have shape \(\.\.\., 3, 3\) broadcastable to the batch shape \[8\]"):
         torchrot.rigid_registration(x, y, init=torch.eye(3, dtype=torch.float64).expand(3, 3, 3))
     with pytest.raises(TypeError, match="init must be float32, float64, float16 or bfloat16, got torch.int64"):
         torchrot.rigid_registration(x, y, init=R.long())
@@ -247,7 +248,8 @@ def test_init_of_any_float_dtype_goes_to_fit_rotation_as_it_is(dtype, init_dtype
     init = R.to(init_dtype)
     seen = []
     fit = torchrot.fit_rotation
-    monkeypatch.setattr(torchrot.registration, "fit_rotation", lambda M, init=None, **kw: seen.append(init) or fit(M, init, **kw))
+    monkeypatch.setattr(torchrot.registration, "fit_rotation",
+                        lambda M, init=None, **kw: seen.append(init) or fit(M, init, **kw))
     out = torchrot.rigid_registration(x.to(dtype), y.to(dtype), init=init)
     assert seen[-1] is init
     assert out.R.dtype == dtype
@@ -327,22 +329,29 @@ _W = torch.ones(5, 10, dtype=torch.float64)
 
 ERRORS = [
     ("x not a tensor", lambda: torchrot.rigid_registration(_X.tolist(), _X), TypeError, "x must be a torch.Tensor"),
-    ("y wrong last dim", lambda: torchrot.rigid_registration(_X, _X[..., :2]), ValueError, r"y must have shape \(\.\.\., N, 3\)"),
+    ("y wrong last dim", lambda: torchrot.rigid_registration(_X, _X[..., :2]), ValueError,
+     r"y must have shape \(\.\.\., N, 3\)"),
     ("x 1-D", lambda: torchrot.rigid_registration(_X[0, 0], _X), ValueError, r"x must have shape"),
     ("N differs", lambda: torchrot.rigid_registration(_X, _X[:, :9]), ValueError, "same number of points"),
     ("integer x", lambda: torchrot.rigid_registration(_X.long(), _X.long()), TypeError, "x must be float32"),
     ("dtypes differ", lambda: torchrot.rigid_registration(_X, _X.float()), TypeError, "y must have x's dtype"),
-    ("batch mismatch", lambda: torchrot.rigid_registration(_X, _X[:4]), ValueError, "batch dimensions must broadcast"),
+    ("batch mismatch", lambda: torchrot.rigid_registration(_X, _X[:4]), ValueError,
+     "batch dimensions must broadcast"),
     ("weights batch mismatch", lambda: torchrot.rigid_registration(_X, _X, _W[:3]), ValueError, "batch dimensions"),
-    ("weights wrong N", lambda: torchrot.rigid_registration(_X, _X, _W[:, :9]), ValueError, r"weights must have shape \(\.\.\., N\)"),
-    ("weights dtype", lambda: torchrot.rigid_registration(_X, _X, _W.float()), TypeError, "weights must have x's dtype"),
-    ("weights not a tensor", lambda: torchrot.rigid_registration(_X, _X, [1.0] * 10), TypeError, "weights must be None or a torch.Tensor"),
-    ("negative weight", lambda: torchrot.rigid_registration(_X, _X, _W - 2 * (torch.arange(10) == 4)), ValueError, "weights must be >= 0"),
+    ("weights wrong N", lambda: torchrot.rigid_registration(_X, _X, _W[:, :9]), ValueError,
+     r"weights must have shape \(\.\.\., N\)"),
+    ("weights dtype", lambda: torchrot.rigid_registration(_X, _X, _W.float()), TypeError,
+     "weights must have x's dtype"),
+    ("weights not a tensor", lambda: torchrot.rigid_registration(_X, _X, [1.0] * 10), TypeError,
+     "weights must be None or a torch.Tensor"),
+    ("negative weight", lambda: torchrot.rigid_registration(_X, _X, _W - 2 * (torch.arange(10) == 4)), ValueError,
+     "weights must be >= 0"),
     ("all-zero weights", lambda: torchrot.rigid_registration(_X, _X, _W * (torch.arange(5) != 3)[:, None]), ValueError,
      r"problem \(3,\).*all weights are zero"),
     ("two effective points", lambda: torchrot.rigid_registration(_X, _X, _W * (torch.arange(10) < 2)), ValueError,
      r"at least 3 points of nonzero weight.*only 2 point"),
-    ("two points", lambda: torchrot.rigid_registration(_X[:, :2], _X[:, :2]), ValueError, "at least 3 points, got N = 2"),
+    ("two points", lambda: torchrot.rigid_registration(_X[:, :2], _X[:, :2]), ValueError,
+     "at least 3 points, got N = 2"),
     ("scale not bool", lambda: torchrot.rigid_registration(_X, _X, scale=1), TypeError, "scale must be a bool"),
     ("coincident x with scale", lambda: torchrot.rigid_registration(_X[:, :1].expand(5, 10, 3), _X, scale=True),
      ValueError, "must not all coincide"),

@@ -18,7 +18,6 @@ import torchrot
 from torchrot.testing import bits, make_matrices, make_warm_start
 
 
-
 def _same(a, b) -> bool:
     a = a if isinstance(a, tuple) else (a,)
     b = b if isinstance(b, tuple) else (b,)
@@ -109,6 +108,7 @@ def _resident_bytes() -> int:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not os.path.exists("/proc/self/statm"), reason="needs /proc (Linux)")
 def test_no_leak_over_1e5_calls():
     """1e5 calls through every entry point (including ones that raise)

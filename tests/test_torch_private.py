@@ -96,7 +96,8 @@ def test_single_level_function_records_at_each_level():
 
 def test_non_overlapping_and_dense():
     assert private.is_non_overlapping_and_dense(M) and private.is_non_overlapping_and_dense(M.mT)
-    assert not private.is_non_overlapping_and_dense(M[::2]) and not private.is_non_overlapping_and_dense(M[:1].expand(3, 3, 3))
+    assert not private.is_non_overlapping_and_dense(M[::2])
+    assert not private.is_non_overlapping_and_dense(M[:1].expand(3, 3, 3))
 
 
 def test_unwrap_dead_wrappers_and_single_level_mode():

@@ -31,8 +31,8 @@ from torch._dynamo.backends.registry import lookup_backend
 from torch.func import grad, hessian, jacfwd, jacrev, jvp, vjp, vmap
 
 import torchrot
-from torchrot.nn import RigidRegistration, RotationFit
 from torchrot._extension import torch_release as release_of
+from torchrot.nn import RigidRegistration, RotationFit
 from torchrot.testing import generic_kernel
 
 BACKEND = os.environ.get("TORCHROT_TEST_COMPILE_BACKEND", "aot_eager")
@@ -50,7 +50,9 @@ def reference_calls(monkeypatch):
     device-generic kernels (they look it up in torchrot._device_kernels at each call)."""
     calls = collections.Counter()
     for name in ("fit_rotation_reference", "fit_rotation_backward_reference"):
-        def counting(*args, _name=name, _function=getattr(torchrot._device_kernels, name), **kwargs):
+        function = getattr(torchrot._device_kernels, name)
+
+        def counting(*args, _name=name, _function=function, **kwargs):
             calls[_name] += 1
             return _function(*args, **kwargs)
         monkeypatch.setattr(torchrot._device_kernels, name, counting)

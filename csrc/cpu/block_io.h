@@ -38,8 +38,9 @@ using kernel::Mat3;
 template <typename F>
 void parallel_blocks(int64_t n, int64_t width, int64_t grain, const F& f) {
   const int64_t blocks = (n + width - 1) / width;
-  at::parallel_for(0, blocks, std::max<int64_t>(1, grain / width),
-                   [&](int64_t first_block, int64_t end_block) { f(first_block * width, std::min(n, end_block * width)); });
+  at::parallel_for(0, blocks, std::max<int64_t>(1, grain / width), [&](int64_t first_block, int64_t end_block) {
+    f(first_block * width, std::min(n, end_block * width));
+  });
 }
 
 // Offset of matrix i (Layout).
@@ -103,8 +104,8 @@ TORCHROT_INLINE void prefetch_tiles(const typename L::Scalar* data, const Layout
 // vector paths of the callers keep their registers (measured: inlined, they
 // made the SoA one-step fit 10% slower).
 template <typename L, bool kContiguous>
-[[gnu::noinline]] Mat3<typename L::V> gather_block(const typename L::Scalar* data, const Layout& layout,
-                                                  int64_t first, int count) {
+[[gnu::noinline]] Mat3<typename L::V> gather_block(const typename L::Scalar* data, const Layout& layout, int64_t first,
+                                                   int count) {
   using T = typename L::Scalar;
   alignas(64) T buf[9][L::width];
   for (int j = 0; j < L::width; ++j) {
@@ -148,7 +149,7 @@ TORCHROT_INLINE void tiled_runs(const Layout& layout, int64_t first, int64_t run
 // from there (out of line, as gather_block).
 template <typename L, int kRun>
 [[gnu::noinline]] Mat3<typename L::V> load_tiled_runs(const typename L::Scalar* data, const Layout& layout,
-                                                     int64_t first) {
+                                                      int64_t first) {
   using T = typename L::Scalar;
   int64_t run[L::width / kRun];
   tiled_runs<L, kRun>(layout, first, run);
@@ -161,7 +162,8 @@ template <typename L, int kRun>
   } else {
     alignas(64) T buf[9][L::width];
     for (int r = 0; r < L::width / kRun; ++r) {
-      for (int k = 0; k < 9; ++k) std::memcpy(&buf[k][r * kRun], data + run[r] + entry_offset(layout, k), kRun * sizeof(T));
+      for (int k = 0; k < 9; ++k)
+        std::memcpy(&buf[k][r * kRun], data + run[r] + entry_offset(layout, k), kRun * sizeof(T));
     }
     for (int k = 0; k < 9; ++k) A.a[k] = L::load(buf[k]);
   }
@@ -183,7 +185,8 @@ template <typename L, int kRun>
     alignas(64) T buf[9][L::width];
     for (int k = 0; k < 9; ++k) L::store(R.a[k], buf[k]);
     for (int r = 0; r < L::width / kRun; ++r) {
-      for (int k = 0; k < 9; ++k) std::memcpy(data + run[r] + entry_offset(layout, k), &buf[k][r * kRun], kRun * sizeof(T));
+      for (int k = 0; k < 9; ++k)
+        std::memcpy(data + run[r] + entry_offset(layout, k), &buf[k][r * kRun], kRun * sizeof(T));
     }
   }
 }
@@ -255,9 +258,15 @@ TORCHROT_INLINE void run_block_paths(BlockPath path, int64_t begin, int64_t end,
   const int64_t full_end = path == P::kAny ? end : begin + (end - begin) / L::width * L::width;
   if (full_end > begin) {
     switch (path) {
-      case P::kTransposed: f(std::integral_constant<P, P::kTransposed>{}, begin, full_end); break;
-      case P::kVectors: f(std::integral_constant<P, P::kVectors>{}, begin, full_end); break;
-      case P::kAny: f(std::integral_constant<P, P::kAny>{}, begin, full_end); break;
+      case P::kTransposed:
+        f(std::integral_constant<P, P::kTransposed>{}, begin, full_end);
+        break;
+      case P::kVectors:
+        f(std::integral_constant<P, P::kVectors>{}, begin, full_end);
+        break;
+      case P::kAny:
+        f(std::integral_constant<P, P::kAny>{}, begin, full_end);
+        break;
     }
   }
   if (end > full_end) f(std::integral_constant<P, P::kAny>{}, full_end, end);
@@ -267,15 +276,14 @@ TORCHROT_INLINE void run_block_paths(BlockPath path, int64_t begin, int64_t end,
 // of a tail block get the identity, a harmless input. kTransposed and
 // kVectors take full blocks only.
 template <typename L, BlockPath kPath>
-TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, const Layout& layout,
-                                               int64_t first, int count) {
+TORCHROT_INLINE Mat3<typename L::V> load_block(const typename L::Scalar* data, const Layout& layout, int64_t first,
+                                               int count) {
   constexpr bool kContiguous = kPath == BlockPath::kTransposed;
   Mat3<typename L::V> A;
   if constexpr (kernel::IsPaired<L>::value) {  // two half blocks
     using H = typename L::HalfLanes;
     const Mat3<typename H::V> lo = load_block<H, kPath>(data, layout, first, std::min(count, H::width));
-    const Mat3<typename H::V> hi =
-        load_block<H, kPath>(data, layout, first + H::width, std::max(count - H::width, 0));
+    const Mat3<typename H::V> hi = load_block<H, kPath>(data, layout, first + H::width, std::max(count - H::width, 0));
     for (int k = 0; k < 9; ++k) A.a[k] = {lo.a[k], hi.a[k]};
     return A;
   } else if constexpr (L::width == 1) {  // the scalar path: one matrix, straight

@@ -108,21 +108,13 @@ WarmStartCount run_kernel(const cpu::KernelTable& table, const cpu::WarmStartArg
   return table.bad_warm_starts_double(args);
 }
 
-int64_t run_kernel(const cpu::KernelTable& table, const cpu::BatchArgs<float>& args) {
-  return table.fit_float(args);
-}
+int64_t run_kernel(const cpu::KernelTable& table, const cpu::BatchArgs<float>& args) { return table.fit_float(args); }
 
-int64_t run_kernel(const cpu::KernelTable& table, const cpu::BatchArgs<double>& args) {
-  return table.fit_double(args);
-}
+int64_t run_kernel(const cpu::KernelTable& table, const cpu::BatchArgs<double>& args) { return table.fit_double(args); }
 
-void run_kernel(const cpu::KernelTable& table, const cpu::TangentArgs<float>& args) {
-  table.tangent_float(args);
-}
+void run_kernel(const cpu::KernelTable& table, const cpu::TangentArgs<float>& args) { table.tangent_float(args); }
 
-void run_kernel(const cpu::KernelTable& table, const cpu::TangentArgs<double>& args) {
-  table.tangent_double(args);
-}
+void run_kernel(const cpu::KernelTable& table, const cpu::TangentArgs<double>& args) { table.tangent_double(args); }
 
 }  // namespace
 
@@ -153,8 +145,7 @@ WarmStartCount count_bad_warm_starts_cpu(at::ScalarType dtype, int64_t n, const 
 }
 
 int64_t fit_rotation_cpu(at::ScalarType dtype, int64_t n, const MatrixBatch& M, const MatrixBatch* init,
-                         const MatrixBatch& out, const FitOptions& options, int32_t* iterations,
-                         uint8_t* status) {
+                         const MatrixBatch& out, const FitOptions& options, int32_t* iterations, uint8_t* status) {
   const cpu::KernelTable& table = kernels(selected_isa());
   int64_t bad_inits = 0;
   AT_DISPATCH_FLOATING_TYPES(dtype, "torchrot_fit_rotation_cpu", [&] {

@@ -1,6 +1,6 @@
-// Kernel object: the scalar path: one matrix at a time in plain C++ (the reference the SIMD kernels are tested against).
-// Built with its own flags and CPU_CAPABILITY (setup.py); everything it
-// defines lives in an anonymous namespace except the table getter below.
+// Kernel object: the scalar path: one matrix at a time in plain C++ (the reference the SIMD kernels are tested
+// against). Built with its own flags and CPU_CAPABILITY (setup.py); everything it defines lives in an anonymous
+// namespace except the table getter below.
 #include "kernel_object.h"
 
 namespace torchrot {

@@ -62,7 +62,7 @@ struct WarmStartArgs {
 
 struct KernelTable {
   const char* name;
-  int width_float;   // matrices per SIMD block
+  int width_float;  // matrices per SIMD block
   int width_double;
   // Rounds a * b + c once, as the scalar kernel does, so its results are the
   // scalar kernel's bit for bit (false only for x86-64's default object, see

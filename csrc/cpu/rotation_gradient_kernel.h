@@ -29,15 +29,13 @@ void tangent_range(const TangentArgs<typename L::Scalar>& args, int64_t begin, i
     const Mat3<typename L::V> X = load_block<L, kPath>(args.X, args.x_layout, first, count);
     const Mat3<typename L::V> R = load_block<L, kPath>(args.R, args.r_layout, first, count);
     const Mat3<typename L::V> M = load_block<L, kPath>(args.M, args.m_layout, first, count);
-    store_block<L, kPath>(kernel::rotation_tangent<L>(X, R, M, args.damping), args.out, args.out_layout,
-                                first, count);
+    store_block<L, kPath>(kernel::rotation_tangent<L>(X, R, M, args.damping), args.out, args.out_layout, first, count);
   }
 }
 
 template <typename L>
 void tangent_batch(const TangentArgs<typename L::Scalar>& args) {
-  const BlockPath path =
-      full_block_path(L::width, {&args.x_layout, &args.r_layout, &args.m_layout, &args.out_layout});
+  const BlockPath path = full_block_path(L::width, {&args.x_layout, &args.r_layout, &args.m_layout, &args.out_layout});
   parallel_blocks(args.n, L::width, kTangentGrainSize, [&](int64_t begin, int64_t end) {
     run_block_paths<L>(path, begin, end,
                        [&](auto block_path, int64_t b, int64_t e) { tangent_range<L, block_path.value>(args, b, e); });

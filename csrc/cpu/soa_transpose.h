@@ -114,7 +114,8 @@ inline void interleave3(const typename Shuffle<T>::R in[3], typename Shuffle<T>:
   constexpr const auto& tab = S::tables;
   typename S::R placed[3];
   for (int r = 0; r < 3; ++r) placed[r] = S::permute(in[r], tab.scatter[r]);
-  for (int g = 0; g < 3; ++g) out[g] = S::blend(S::blend(placed[0], placed[1], tab.place[g][0]), placed[2], tab.place[g][1]);
+  for (int g = 0; g < 3; ++g)
+    out[g] = S::blend(S::blend(placed[0], placed[1], tab.place[g][0]), placed[2], tab.place[g][1]);
 }
 
 // Loads W contiguous matrices: soa[k] lane j = entry k of matrix j.
@@ -169,10 +170,10 @@ inline void store_halves(__m256d v, double* lo, double* hi) {
 // Transposes the 4 x 4 matrix in each 128-bit half: out[k] lane i = in[i]
 // lane k, within the lower and within the upper four lanes.
 inline void transpose_halves(const __m256 in[4], __m256 out[4]) {
-  const __m256 t0 = _mm256_unpacklo_ps(in[0], in[1]);  // a0 b0 a1 b1
-  const __m256 t1 = _mm256_unpackhi_ps(in[0], in[1]);  // a2 b2 a3 b3
-  const __m256 t2 = _mm256_unpacklo_ps(in[2], in[3]);  // c0 d0 c1 d1
-  const __m256 t3 = _mm256_unpackhi_ps(in[2], in[3]);  // c2 d2 c3 d3
+  const __m256 t0 = _mm256_unpacklo_ps(in[0], in[1]);           // a0 b0 a1 b1
+  const __m256 t1 = _mm256_unpackhi_ps(in[0], in[1]);           // a2 b2 a3 b3
+  const __m256 t2 = _mm256_unpacklo_ps(in[2], in[3]);           // c0 d0 c1 d1
+  const __m256 t3 = _mm256_unpackhi_ps(in[2], in[3]);           // c2 d2 c3 d3
   out[0] = _mm256_shuffle_ps(t0, t2, _MM_SHUFFLE(1, 0, 1, 0));  // a0 b0 c0 d0
   out[1] = _mm256_shuffle_ps(t0, t2, _MM_SHUFFLE(3, 2, 3, 2));
   out[2] = _mm256_shuffle_ps(t1, t3, _MM_SHUFFLE(1, 0, 1, 0));

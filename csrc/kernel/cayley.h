@@ -83,8 +83,8 @@ TORCHROT_INLINE typename L::V objective_estimate(const Mat3<typename L::V>& S, V
     const V s01 = L::abs(S(0, 1) + S(1, 0));
     const V s02 = L::abs(S(0, 2) + S(2, 0));
     const V s12 = L::abs(S(1, 2) + S(2, 1));
-    const V two_lambda2 = L::max(V(2) * S(0, 0) + s01 + s02,
-                                 L::max(V(2) * S(1, 1) + s01 + s12, V(2) * S(2, 2) + s02 + s12));
+    const V two_lambda2 =
+        L::max(V(2) * S(0, 0) + s01 + s02, L::max(V(2) * S(1, 1) + s01 + s12, V(2) * S(2, 2) + s02 + s12));
     g_sym = L::max(t, two_lambda2 - t);
   }
   return L::sqrt(mul_add(g_sym, g_sym, mm));  // Eqs. 26-27

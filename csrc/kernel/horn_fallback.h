@@ -78,8 +78,7 @@ inline Mat3<T> horn_rotation(const Mat3<T>& M) {
     qq += q[i] * q[i];
   }
   const double inv_norm = 1.0 / std::sqrt(qq);
-  const Mat3<double> R = quaternion_rotation(q[0] * inv_norm, q[1] * inv_norm,
-                                             q[2] * inv_norm, q[3] * inv_norm);
+  const Mat3<double> R = quaternion_rotation(q[0] * inv_norm, q[1] * inv_norm, q[2] * inv_norm, q[3] * inv_norm);
   Mat3<T> out;
   for (int i = 0; i < 9; ++i) out.a[i] = static_cast<T>(R.a[i]);
   return out;

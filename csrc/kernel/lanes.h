@@ -264,15 +264,25 @@ struct Pair {
   TORCHROT_INLINE Pair(S x) : lo(W(x)), hi(W(x)) {}  // broadcast
 };
 template <typename W>
-TORCHROT_INLINE Pair<W> operator+(const Pair<W>& a, const Pair<W>& b) { return {a.lo + b.lo, a.hi + b.hi}; }
+TORCHROT_INLINE Pair<W> operator+(const Pair<W>& a, const Pair<W>& b) {
+  return {a.lo + b.lo, a.hi + b.hi};
+}
 template <typename W>
-TORCHROT_INLINE Pair<W> operator-(const Pair<W>& a, const Pair<W>& b) { return {a.lo - b.lo, a.hi - b.hi}; }
+TORCHROT_INLINE Pair<W> operator-(const Pair<W>& a, const Pair<W>& b) {
+  return {a.lo - b.lo, a.hi - b.hi};
+}
 template <typename W>
-TORCHROT_INLINE Pair<W> operator*(const Pair<W>& a, const Pair<W>& b) { return {a.lo * b.lo, a.hi * b.hi}; }
+TORCHROT_INLINE Pair<W> operator*(const Pair<W>& a, const Pair<W>& b) {
+  return {a.lo * b.lo, a.hi * b.hi};
+}
 template <typename W>
-TORCHROT_INLINE Pair<W> operator/(const Pair<W>& a, const Pair<W>& b) { return {a.lo / b.lo, a.hi / b.hi}; }
+TORCHROT_INLINE Pair<W> operator/(const Pair<W>& a, const Pair<W>& b) {
+  return {a.lo / b.lo, a.hi / b.hi};
+}
 template <typename W>
-TORCHROT_INLINE Pair<W> operator-(const Pair<W>& a) { return {-a.lo, -a.hi}; }
+TORCHROT_INLINE Pair<W> operator-(const Pair<W>& a) {
+  return {-a.lo, -a.hi};
+}
 template <typename W>
 TORCHROT_INLINE Pair<W> mul_add(const Pair<W>& a, const Pair<W>& b, const Pair<W>& c) {
   return {mul_add(a.lo, b.lo, c.lo), mul_add(a.hi, b.hi, c.hi)};
@@ -351,9 +361,9 @@ TORCHROT_INLINE typename L::V max_abs_entry(const Mat3<typename L::V>& A) {
   for (int k = 0; k < 9; ++k) a[k] = L::abs(A.a[k]);
   const V top = L::max_number(L::max_number(L::max_number(a[0], a[1]), L::max_number(a[2], a[3])),
                               L::max_number(L::max_number(a[4], a[5]), L::max_number(a[6], a[7])));
-  const auto nan = L::mask_or(L::mask_or(L::unordered(a[0], a[1]), L::unordered(a[2], a[3])),
-                              L::mask_or(L::mask_or(L::unordered(a[4], a[5]), L::unordered(a[6], a[7])),
-                                         L::unordered(a[8], a[8])));
+  const auto nan =
+      L::mask_or(L::mask_or(L::unordered(a[0], a[1]), L::unordered(a[2], a[3])),
+                 L::mask_or(L::mask_or(L::unordered(a[4], a[5]), L::unordered(a[6], a[7])), L::unordered(a[8], a[8])));
   return L::select(nan, V(std::numeric_limits<typename L::Scalar>::quiet_NaN()), L::max_number(top, a[8]));
 }
 
@@ -372,7 +382,7 @@ inline void insert_lane(Mat3<typename L::V>& A, int i, const Mat3<typename L::Sc
 
 template <typename L>
 TORCHROT_INLINE Mat3<typename L::V> select(typename L::Mask m, const Mat3<typename L::V>& if_true,
-                                  const Mat3<typename L::V>& if_false) {
+                                           const Mat3<typename L::V>& if_false) {
   Mat3<typename L::V> out;
   for (int k = 0; k < 9; ++k) out.a[k] = L::select(m, if_true.a[k], if_false.a[k]);
   return out;

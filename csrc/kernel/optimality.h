@@ -94,8 +94,7 @@ TORCHROT_INLINE WarmStartCheck<L> check_warm_start(const Mat3<typename L::V>& R)
   // The Gram diagonal is finite iff every entry of R is.
   check.finite = L::is_finite(G(0, 0) + G(1, 1) + G(2, 2));
   constexpr T tol = T(limits::kInitTolerance);
-  const typename L::Mask rotation =
-      L::mask_and(L::lt(check.deviation2, V(tol * tol)), L::gt(determinant(R), V(0)));
+  const typename L::Mask rotation = L::mask_and(L::lt(check.deviation2, V(tol * tol)), L::gt(determinant(R), V(0)));
   check.bad = L::mask_and(check.finite, L::mask_not(rotation));
   return check;
 }
@@ -123,7 +122,7 @@ TORCHROT_INLINE typename L::Mask used_as_is(const WarmStartCheck<L>& check, type
 // a lane does not depend on its block.
 template <typename L>
 inline Mat3<typename L::V> clean_warm_start(const Mat3<typename L::V>& R0, const WarmStartCheck<L>& check,
-                                           typename L::Scalar clean) {
+                                            typename L::Scalar clean) {
   using V = typename L::V;
   const V clean2(clean * clean);
   typename L::Mask rough = L::mask_and(is_usable<L>(check), L::mask_not(L::lt(check.deviation2, clean2)));

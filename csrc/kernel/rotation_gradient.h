@@ -135,7 +135,7 @@ TORCHROT_INLINE Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& 
   const V inv_ab_max = L::select(solvable, V(1) / ab_max, V(0));
   const V as = a * inv_ab_max, bs = b * inv_ab_max;
   const V norm2 = L::select(solvable, mul_add(as, as, bs * bs), V(1));  // in [1, 2]; 1 where dropped (as = bs = 0)
-  const V weight_adj = as * inv_ab_max / norm2;  // a / (a^2 + b^2)
+  const V weight_adj = as * inv_ab_max / norm2;                         // a / (a^2 + b^2)
   const V weight_shift = bs * inv_ab_max / norm2 * lambda;
   const V huge(std::numeric_limits<T>::max());
   auto saturate = [&huge](V x) { return L::clamp(x, V(0) - huge, huge); };

@@ -29,8 +29,8 @@ enum class Output { kFresh, kCallers };
 // be flattened, and for a caller's out that overlaps M or init other than
 // exactly. A caller's out is written only once the call can no longer fail:
 // its warm starts are checked first (warm_starts.h).
-void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out, FitOptions options,
-             Output output, int32_t* iterations, uint8_t* status) {
+void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out, FitOptions options, Output output,
+             int32_t* iterations, uint8_t* status) {
   const at::ScalarType compute = compute_dtype(M.scalar_type());
   const bool reduced = compute != M.scalar_type();
   const int64_t n = M.numel() / 9;
@@ -42,16 +42,15 @@ void run_fit(const at::Tensor& M, const at::Tensor& init, const at::Tensor& out,
   MatrixBatch init_view;
   if (init.defined()) init_view = broadcast_view(init, M.sizes(), n, compute, init_keep);
   const bool through_temporary =
-      output == Output::kCallers &&
-      (overlaps_other_than_identity(out, M) || overlaps_other_than_identity(out, init));
+      output == Output::kCallers && (overlaps_other_than_identity(out, M) || overlaps_other_than_identity(out, init));
   std::optional<MatrixBatch> out_view;
   if (!reduced && !through_temporary) out_view = batch_view(out, out.sizes(), out.strides(), n);
   if (!out_view) {
     out_keep = new_kernel_buffer(n, M, compute);
     out_view = contiguous_view(out_keep);
   }
-  const int64_t bad_inits = fit_rotation_cpu(compute, n, m_view, init.defined() ? &init_view : nullptr,
-                                             *out_view, options, iterations, status);
+  const int64_t bad_inits = fit_rotation_cpu(compute, n, m_view, init.defined() ? &init_view : nullptr, *out_view,
+                                             options, iterations, status);
   if (bad_inits != 0) {  // only a fresh out has been written; the error counts init in its own shape
     check_warm_starts(init, compute);
     throw_bad_init(bad_inits, n);  // not reached: the same check found them
@@ -79,9 +78,10 @@ void fit_rotation_out_cpu_op(const at::Tensor& M, const std::optional<at::Tensor
   run_fit(M, init_b, out, options, Output::kCallers, nullptr, nullptr);
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_cpu_op(
-    const at::Tensor& M, const std::optional<at::Tensor>& init, std::optional<int64_t> max_iter,
-    c10::string_view variant) {
+std::tuple<at::Tensor, at::Tensor, at::Tensor> fit_rotation_info_cpu_op(const at::Tensor& M,
+                                                                        const std::optional<at::Tensor>& init,
+                                                                        std::optional<int64_t> max_iter,
+                                                                        c10::string_view variant) {
   const at::Tensor init_b = checked_init(M, init);
   const FitOptions options = parse_options(max_iter, variant);
   at::Tensor out = new_result(M);

@@ -13,8 +13,7 @@
 namespace torchrot {
 namespace ops {
 
-std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes, at::IntArrayRef strides,
-                                      int64_t n) {
+std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes, at::IntArrayRef strides, int64_t n) {
   MatrixBatch view;
   view.data = t.data_ptr();
   if (const auto flat = at::detail::computeStride(sizes, strides, at::DimVector{n, 3, 3})) {

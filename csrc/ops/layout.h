@@ -15,9 +15,7 @@ namespace ops {
 
 // The dtype the kernels compute a tensor of dtype `t` in: float32 for
 // float16 and bfloat16.
-inline at::ScalarType compute_dtype(at::ScalarType t) {
-  return t == at::kHalf || t == at::kBFloat16 ? at::kFloat : t;
-}
+inline at::ScalarType compute_dtype(at::ScalarType t) { return t == at::kHalf || t == at::kBFloat16 ? at::kFloat : t; }
 
 // (N, 3, 3) view of a tensor with the given (possibly broadcast) geometry,
 // without creating a tensor: its batch dimensions flattened into one stride,
@@ -25,8 +23,7 @@ inline at::ScalarType compute_dtype(at::ScalarType t) {
 // into a tile's matrices and the leading ones into the tiles, as in the
 // paper authors' (N / 8, 8, 3, 3) blocks of 8 matrices in structure of
 // arrays; nullopt if neither can be.
-std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes, at::IntArrayRef strides,
-                                      int64_t n);
+std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes, at::IntArrayRef strides, int64_t n);
 
 // Whether `t` is in structure-of-arrays layout: dense, the matrix index of
 // stride 1 across all its batch dimensions (a permuted (3, 3, N) tensor) or

@@ -14,6 +14,6 @@
   "(Tensor M, Tensor? init=None, " TORCHROT_FIT_OPTIONS_ARGS ", " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor"
 #define TORCHROT_FIT_ROTATION_INFO_SCHEMA \
   "(Tensor M, Tensor? init=None, " TORCHROT_FIT_OPTIONS_ARGS ") -> (Tensor R, Tensor iterations, Tensor status)"
-#define TORCHROT_FIT_ROTATION_OUT_SCHEMA \
-  "(Tensor M, Tensor? init, int? max_iter, str variant, Tensor(a!) out) -> ()"
-#define TORCHROT_FIT_ROTATION_BACKWARD_SCHEMA "(Tensor grad, Tensor R, Tensor M, " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor"
+#define TORCHROT_FIT_ROTATION_OUT_SCHEMA "(Tensor M, Tensor? init, int? max_iter, str variant, Tensor(a!) out) -> ()"
+#define TORCHROT_FIT_ROTATION_BACKWARD_SCHEMA \
+  "(Tensor grad, Tensor R, Tensor M, " TORCHROT_GRADIENT_EPS_ARG ") -> Tensor"
