@@ -11,7 +11,7 @@
     the contiguous full-batch result; NaN/Inf and zero matrices included;
   * backward: torch.ops.torchrot.fit_rotation_backward against
     fit_rotation_backward_reference, undamped and damped (relative error
-    bounded as in tests/test_autograd.py), plus tails and gradient layouts,
+    bounded as in tests/test_autograd_operator.py), plus tails and gradient layouts,
     and autograd through torchrot.fit_rotation (recorded in C++) equal to it;
   * every kernel object this build has (the hardware's and each below it)
     gives bit-identical results; the hardware kernel is "default" off x86-64,
@@ -52,9 +52,9 @@ X86_64 = platform.machine().lower() in ("x86_64", "amd64")
 DTYPES = (torch.float32, torch.float64)
 VARIANTS = ("newton", "conservative", "gershgorin")
 MODES = (None, 1, 3)
-REFERENCE_TOL = {torch.float32: 1e-5, torch.float64: 1e-10}  # tests/test_ops.py
-BACKWARD_TOL = {torch.float32: 3e-5, torch.float64: 1e-13}  # tests/test_autograd.py, times the condition
-NAMES = WELL_CONDITIONED  # where R itself is compared (tests/test_ops.py)
+REFERENCE_TOL = {torch.float32: 1e-5, torch.float64: 1e-10}  # tests/test_ops_reference.py
+BACKWARD_TOL = {torch.float32: 3e-5, torch.float64: 1e-13}  # tests/test_autograd_operator.py, times the condition
+NAMES = WELL_CONDITIONED  # where R itself is compared (tests/test_ops_reference.py)
 PER_NAME = 7  # 35 matrices: no multiple of any block width, blocks straddle distributions
 TAILS = 21  # batch sizes 0..20
 
@@ -84,7 +84,7 @@ def inputs(dtype: torch.dtype):
     specials[2, 2, 1] = -math.inf
     specials[3] = 0
     specials[4, :, 0] = math.nan
-    # warm starts within 30 degrees of the optimum, as tests/test_ops.py's
+    # warm starts within 30 degrees of the optimum, as tests/test_ops_reference.py's
     # (from far away Newton's path is chaotic: float rounding picks the branch)
     init = rotation_svd(M) @ rotations(M.shape[0], 8, torch.float64, math.radians(30))
     M = torch.cat([M, specials])
@@ -96,7 +96,7 @@ def inputs(dtype: torch.dtype):
 
 
 def tolerance(M: torch.Tensor) -> float:
-    """tests/test_ops.py's bound on |R - R_ref|: in float32 no better than the
+    """tests/test_ops_reference.py's bound on |R - R_ref|: in float32 no better than the
     float32 problem is determined, and twice its 1e-5: the float32 reference
     is itself rounded, differently on each platform (aarch64's torch lands
     1.02e-5 from the kernel after one conservative step from a warm start
@@ -169,7 +169,7 @@ def backward(kernel: str, tag: str, M_all, G_all, special) -> None:
     sigma = torch.linalg.svdvals(M.double())
     pair = torch.minimum(sigma[:, 0] + sigma[:, 1], torch.minimum(sigma[:, 0] + sigma[:, 2], sigma[:, 1] + sigma[:, 2]))
     # rounding is amplified by the system's condition |M| / min(sigma_i + sigma_j)
-    # (tests/test_autograd.py's 1 / min(sigma_i + sigma_j) for its |M| ~ 1)
+    # (tests/test_autograd_operator.py's 1 / min(sigma_i + sigma_j) for its |M| ~ 1)
     cond = sigma[:, 0] / pair.clamp_min(1e-3 * sigma[:, 0])
     for eps in (0.0, GRADIENT_EPS):
         key = f"{tag}/{kernel}/backward/{eps:g}"
@@ -233,7 +233,7 @@ def main() -> None:
                   flush=True)
         first = kernels[0]
         for kernel in kernels[1:]:
-            if rounding_reference(kernel) != first:  # x86-64's default kernel: tests/test_isa.py checks it
+            if rounding_reference(kernel) != first:  # x86-64's default kernel: tests/test_isa_*.py check it
                 print(f"info: {tag}: {kernel} rounds a * b + c twice (csrc/kernel/mul_add.h): not compared "
                       f"with {first}")
                 continue

@@ -2,7 +2,8 @@
 
 Test data always comes from ``torchrot.testing`` (the distributions, edge cases
 and metrics shared with the benchmarks); this file only holds the parameter
-lists and small helpers that several test modules use.
+lists and small helpers that several test modules use; the helpers of one family
+of test modules are in its own module (tests/isa_helpers.py for tests/test_isa_*.py, ...).
 """
 from __future__ import annotations
 
@@ -14,6 +15,11 @@ import torch
 import torchrot  # noqa: F401  (registers torch.ops.torchrot.*)
 from torchrot._constants import VARIANTS
 from torchrot.testing import CRITERIA, dtype_id, make_matrices, rotation_errors
+from torchrot.testing import cpu_kernel as forced_kernel
+
+# The helper modules shared by several test modules assert too: pytest rewrites their asserts as it does the
+# tests' (values in the failure messages).
+pytest.register_assert_rewrite("accuracy_helpers", "fuzz_checks", "isa_helpers", "registration_helpers")
 
 DTYPES = (torch.float32, torch.float64)
 
@@ -24,6 +30,13 @@ def restore_threads():
     n = torch.get_num_threads()
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture
+def use_isa():
+    """``with use_isa(name): ...`` runs its body on kernel ``name`` (None or
+    "": the process default), in this thread only (torchrot.testing.cpu_kernel)."""
+    return forced_kernel
 
 
 @pytest.fixture(params=DTYPES, ids=dtype_id)

@@ -2,7 +2,7 @@
 kernels (torchrot.generic; compiled on COMPILED_DEVICE_TYPES). Each test runs
 on every accelerator present and is skipped where there is none (here: this
 suite's machines have no GPU). The same algorithm runs on CPU tensors in
-tests/test_generic_path.py and, under every transform, tests/test_transforms.py.
+tests/test_generic_path.py and, under every transform, tests/test_transforms_matrix.py.
 
 Answers are compared with the C++ kernel on the CPU: the same status codes,
 the accuracy criteria of testing.CRITERIA, NaN exactly where the input had it.

@@ -26,7 +26,9 @@ largest finite values), matrices scaled by 2^e over the whole exponent range,
 rank-1 matrices, matrices with exactly repeated singular values (built from
 signed permutations, so that the repetition is exact in floating point),
 near-rotations and NaN/Inf entries; ``test_batched_recipes`` expands drawn
-recipes into large batches from ``torchrot.testing``'s distributions.
+recipes into large batches from ``torchrot.testing``'s distributions
+(the strategies: tests/fuzz_strategies.py; running every kernel and checking
+the properties: tests/fuzz_checks.py).
 
 Profiles: the default run is short and derandomised (reproducible in CI).
 ``TORCHROT_FUZZ=long`` runs the long profile (random, several million
@@ -37,33 +39,38 @@ Convention: R (det +1) maximises tr(R^T M); column vectors.
 """
 from __future__ import annotations
 
-import itertools
 import math
 import os
 
 import pytest
 import torch
+from fuzz_checks import (
+    CHECKED,
+    GRADIENT_EPS_VALUES,
+    SUPPORTED_ISAS,
+    _kernel,
+    check_derivatives,
+    check_fit,
+    scale_pow2,
+)
+from fuzz_strategies import (
+    SIGNED_PERMUTATIONS,
+    _elementwise,
+    _exponent_range,
+    _near_rotation,
+    _repeated_singular_values,
+    _scaled,
+    incoming_gradients,
+    problems,
+)
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 import torchrot
-from torchrot._constants import CPU_KERNELS, VARIANTS
-from torchrot.reference import quaternion_rotation, rotation_svd
-from torchrot.testing import CRITERIA, DISTRIBUTIONS, bits, cpu_kernel, dtype_id, random_rotations, rounds_like_scalar
+from torchrot._constants import VARIANTS
+from torchrot.testing import DISTRIBUTIONS, bits, dtype_id, random_rotations
 
 DTYPES = (torch.float32, torch.float64)
-ISAS = CPU_KERNELS
-
-
-def _supported_isas() -> tuple[str, ...]:
-    """The kernels this CPU can run (ATen's level, as csrc/cpu/dispatch.cpp maps it)."""
-    cap = torch.backends.cpu.get_cpu_capability()
-    top = {"AVX512": "avx512", "AVX2": "avx2"}.get(cap, "default")
-    return ISAS[: ISAS.index(top) + 1]
-
-
-SUPPORTED_ISAS = _supported_isas()
-ROUNDS_LIKE_SCALAR = {isa: rounds_like_scalar(isa) for isa in SUPPORTED_ISAS}
 LONG = os.environ.get("TORCHROT_FUZZ", "") == "long"
 SCALE = int(os.environ.get("TORCHROT_FUZZ_SCALE", "1"))
 
@@ -81,10 +88,8 @@ def _settings(default_examples: int, long_examples: int) -> settings:
 
 
 # ---------------------------------------------------------------------------
-# Counting what was checked (printed by the long profile)
+# Printing what was checked (tests/fuzz_checks.py counts it)
 # ---------------------------------------------------------------------------
-
-CHECKED = {"matrices": 0, "non_finite": 0, "derivative_matrices": 0, "kernel_calls": 0}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -99,334 +104,6 @@ def _report_counts(request):
                 f"each at {len(SUPPORTED_ISAS)} kernels {SUPPORTED_ISAS}; derivatives of "
                 f"{CHECKED['derivative_matrices']:,}; {CHECKED['kernel_calls']:,} kernel calls"
             )
-
-
-# ---------------------------------------------------------------------------
-# Running every kernel and checking the properties
-# ---------------------------------------------------------------------------
-
-
-def _kernel(isa: str):
-    return cpu_kernel(isa)
-
-
-def fit_every_kernel(M, init, max_iter, variant) -> dict:
-    """isa -> (R, iterations, status) of ``fit_rotation_info`` at each kernel."""
-    results = {}
-    for isa in SUPPORTED_ISAS:
-        with _kernel(isa):
-            assert torch.ops.torchrot.cpu_kernel() == isa
-            results[isa] = tuple(torchrot.fit_rotation_info(M, init, max_iter=max_iter, variant=variant))
-        CHECKED["kernel_calls"] += 1
-    return results
-
-
-def scale_pow2(x: torch.Tensor, exponent) -> torch.Tensor:
-    """x * 2^exponent, exact unless the result over/underflows (torch.ldexp
-    multiplies by 2.0 ** exponent, which overflows for |exponent| > 1023:
-    split into two factors)."""
-    e = torch.as_tensor(exponent, dtype=torch.float64)
-    half = torch.trunc(e / 2)
-    return torch.ldexp(torch.ldexp(x, half), e - half)
-
-
-def exactly_rescaled(M: torch.Tensor) -> torch.Tensor:
-    """Float64 copy of finite ``(n, 3, 3)`` M, each matrix scaled by a power of
-    two to max |entry| in [0.5, 1) (same maximiser; no over/underflow in the
-    SVD reference or the norms)."""
-    M64 = M.double()
-    max_abs = M64.abs().amax((-2, -1))
-    _, exponent = torch.frexp(torch.where(max_abs > 0, max_abs, torch.ones_like(max_abs)))
-    return scale_pow2(M64, -exponent.to(torch.float64)[:, None, None])
-
-
-def rotation_failures(R: torch.Tensor, M: torch.Tensor, dtype, converged: bool) -> list[str]:
-    """Why the finite results R (n, 3, 3) for finite M are not (optimal) rotations."""
-    limits = CRITERIA[dtype]
-    failures = []
-    if not bool(torch.isfinite(R).all()):
-        bad = (~torch.isfinite(R)).reshape(-1, 9).any(1).nonzero().flatten().tolist()
-        return [f"non-finite R for finite input at {bad[:5]}: M={M[bad[0]].tolist()}"]
-    Rd = R.double()
-    orth = (Rd.mT @ Rd - torch.eye(3, dtype=torch.float64)).abs().amax((-2, -1))
-    det = (torch.linalg.det(Rd) - 1).abs()
-    metrics = {"orthonormality": orth, "det": det}
-    if converged:
-        A = exactly_rescaled(M)
-        norm = A.norm(dim=(-2, -1))
-        objective = lambda Q: (Q * A).sum((-2, -1))  # noqa: E731
-        shortfall = (objective(rotation_svd(A)) - objective(Rd)) / torch.where(norm > 0, norm, 1.0)
-        metrics["shortfall"] = shortfall
-    for name, values in metrics.items():
-        if values.numel() and not bool((values <= limits[name]).all()):
-            i = int(values.argmax())
-            failures.append(f"{name} {values[i].item():.3g} > {limits[name]:g} at matrix {i}: M={M[i].tolist()}")
-    return failures
-
-
-def check_fit(M: torch.Tensor, init: torch.Tensor | None, max_iter, variant, what: str = "") -> None:
-    """All properties for ``(n, 3, 3)`` M and optional init broadcastable to it:
-    of the scalar kernel's results, and of those of any kernel that rounds
-    differently (x86-64's default, ``rounds_like_scalar``); every other kernel
-    must reproduce the scalar kernel's bit for bit."""
-    n = M.shape[0]
-    results = fit_every_kernel(M, init, max_iter, variant)
-    context = f"{what} {M.dtype} n={n} max_iter={max_iter} variant={variant} warm={init is not None}"
-    CHECKED["matrices"] += n
-    CHECKED["non_finite"] += int((results["scalar"][2] == 3).sum())  # status 3 is exactly that (checked below)
-    for isa, got in results.items():
-        if isa == "scalar" or not ROUNDS_LIKE_SCALAR[isa]:
-            check_fit_properties(M, init, max_iter, got, f"{context} {isa}")
-    R, iterations, status = results["scalar"]
-    for isa, got in results.items():
-        if not ROUNDS_LIKE_SCALAR[isa]:
-            continue
-        for name, a, b in zip(("R", "iterations", "status"), got, (R, iterations, status)):
-            same = torch.equal(bits(a), bits(b)) if name == "R" else torch.equal(a, b)
-            if not same:
-                bad = (bits(a) != bits(b)).reshape(n, -1).any(1) if name == "R" else (a != b)
-                i = int(bad.nonzero()[0])
-                pytest.fail(f"{context}: {isa} {name} differs from scalar at matrix {i}: M={M[i].tolist()}, "
-                            f"{isa} {a[i].tolist()} vs scalar {b[i].tolist()}")
-
-
-def check_fit_properties(M, init, max_iter, result, context: str) -> None:
-    """NaN exactly for non-finite input, statuses, step counts and the
-    accuracy criteria of one kernel's ``(R, iterations, status)``."""
-    dtype = M.dtype
-    n = M.shape[0]
-    R, iterations, status = result
-    non_finite = ~torch.isfinite(M).reshape(n, 9).all(1)
-    if init is not None:
-        non_finite |= ~torch.isfinite(init.expand(M.shape)).reshape(n, 9).all(1)
-
-    # NaN exactly where the input had NaN/Inf, in all nine entries
-    R_nan = torch.isnan(R).reshape(n, 9)
-    assert bool(R_nan[non_finite].all()), f"{context}: non-finite input without an all-NaN result"
-    assert torch.equal(status == 3, non_finite), f"{context}: status 3 != non-finite input"
-    finite = ~non_finite
-    assert not bool(R_nan[finite].any()), (
-        f"{context}: NaN for finite input at {R_nan[finite].any(1).nonzero().flatten().tolist()[:5]}"
-    )
-    assert bool((status[finite] <= 1).all()), f"{context}: status {status[finite].unique().tolist()}"
-
-    converged = max_iter is None
-    cap = 36 if converged else max_iter
-    most = int(iterations.max()) if n else 0
-    assert most <= cap, f"{context}: {most} steps > {cap}"
-    if not converged:
-        assert not bool((status == 1).any()), f"{context}: fallback outside converged mode"
-
-    failures = rotation_failures(R[finite], M[finite], dtype, converged)
-    assert not failures, f"{context}: " + "; ".join(failures)
-
-
-#: damping values the derivative is fuzzed with (0: undamped; the default 1e-6)
-GRADIENT_EPS_VALUES = (0.0, 1e-12, 1e-7, 1e-6, 1e-3, 1.0, 1e3)  # 1e3: the largest accepted
-
-
-def _rows_finite(t: torch.Tensor, n: int) -> torch.Tensor:
-    return torch.isfinite(t).reshape(n, 9).all(1)
-
-
-def check_derivatives(M, init, max_iter, variant, G, gradient_eps, what: str = "") -> None:
-    """Backward (dL/dM for dL/dR = G) and forward-mode tangent (dR for
-    dM = G) at every kernel: finite where M, init and G are finite, and
-    bit-identical to the scalar kernel (NaN vs NaN where an input was not)
-    at the kernels that round like it (``rounds_like_scalar``)."""
-    n = M.shape[0]
-    context = (f"{what} {M.dtype} n={n} max_iter={max_iter} variant={variant} warm={init is not None} "
-               f"gradient_eps={gradient_eps}")
-    finite_in = _rows_finite(M, n) & _rows_finite(G, n)
-    if init is not None:
-        finite_in &= _rows_finite(init.expand(M.shape), n)
-    results = {}
-    for isa in SUPPORTED_ISAS:
-        with _kernel(isa):
-            assert torch.ops.torchrot.cpu_kernel() == isa
-            M_leaf = M.clone().requires_grad_()
-            R = torchrot.fit_rotation(M_leaf, init, max_iter=max_iter, variant=variant, gradient_eps=gradient_eps)
-            assert R.grad_fn is not None
-            R.backward(G)
-            _, tangent = torch.func.jvp(
-                lambda X: torchrot.fit_rotation(X, init, max_iter=max_iter, variant=variant,
-                                                gradient_eps=gradient_eps), (M,), (G,))
-        results[isa] = (M_leaf.grad, tangent)
-        CHECKED["kernel_calls"] += 4
-    CHECKED["derivative_matrices"] += n
-    for isa, got in results.items():
-        if isa != "scalar" and ROUNDS_LIKE_SCALAR[isa]:
-            continue  # compared with the scalar kernel's below
-        for name, value in zip(("backward", "tangent"), got):
-            finite_out = _rows_finite(value, n)
-            bad = (finite_in & ~finite_out).nonzero().flatten().tolist()
-            assert not bad, (f"{context}: {isa}: non-finite {name} for finite input at {bad[:5]}: "
-                             f"M={M[bad[0]].tolist()} G={G[bad[0]].tolist()} -> {value[bad[0]].tolist()}")
-    for isa, got in results.items():
-        if not ROUNDS_LIKE_SCALAR[isa]:
-            continue
-        for name, a, b in zip(("backward", "tangent"), got, results["scalar"]):
-            # entrywise: equal bits, or NaN in both (the NaN's sign may differ
-            # between the scalar and SIMD min/max for NaN/Inf inputs)
-            same = ((bits(a) == bits(b)) | (torch.isnan(a) & torch.isnan(b))).reshape(n, 9).all(1)
-            if not bool(same.all()):
-                i = int((~same).nonzero()[0])
-                pytest.fail(f"{context}: {isa} {name} differs from scalar at matrix {i}: M={M[i].tolist()} "
-                            f"G={G[i].tolist()}: {a[i].tolist()} vs {b[i].tolist()}")
-
-
-# ---------------------------------------------------------------------------
-# Strategies
-# ---------------------------------------------------------------------------
-
-
-def _signed_permutations() -> list[torch.Tensor]:
-    mats = []
-    for perm in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            P = torch.zeros(3, 3, dtype=torch.float64)
-            for row, col in enumerate(perm):
-                P[row, col] = signs[row]
-            mats.append(P)
-    return mats
-
-
-SIGNED_PERMUTATIONS = _signed_permutations()  # 48, exact in any precision
-CUBE_ROTATIONS = [P for P in SIGNED_PERMUTATIONS if torch.linalg.det(P) > 0]  # 24
-
-
-def _floats(dtype, **kw):
-    return st.floats(width=32 if dtype == torch.float32 else 64, **kw)
-
-
-def _exponent_range(dtype):
-    """(lo, hi): 2^lo is the smallest subnormal, 2^hi overflows."""
-    info = torch.finfo(dtype)
-    mantissa_bits = round(-math.log2(info.eps))
-    return round(math.log2(info.smallest_normal)) - mantissa_bits, round(math.log2(info.max)) + 1
-
-
-@st.composite
-def _elementwise(draw, dtype):
-    """Nine independent floats: hypothesis favours 0, -0, subnormals, max, ..."""
-    return torch.tensor(draw(st.lists(_floats(dtype, allow_nan=False, allow_infinity=False), min_size=9,
-                                      max_size=9)), dtype=torch.float64).view(3, 3)
-
-
-@st.composite
-def _scaled(draw, dtype):
-    """A matrix of O(1) entries (some exactly 0) times 2^e over the whole
-    exponent range of the dtype, down to subnormals (where entries lose
-    bits or vanish) and up to overflow (Inf after the cast, expected NaN)."""
-    lo, hi = _exponent_range(dtype)
-    entries = draw(st.lists(st.one_of(st.just(0.0), st.floats(-1, 1)), min_size=9, max_size=9))
-    exponent = draw(st.integers(lo, hi))
-    return scale_pow2(torch.tensor(entries, dtype=torch.float64), exponent).view(3, 3)
-
-
-@st.composite
-def _repeated_singular_values(draw, dtype):
-    """P1 B P2 with signed permutations P1, P2 and B = diag(a, a, b),
-    a I, or a similarity block [[a, -b], [b, a]] (+) c (singular values
-    sqrt(a^2 + b^2) twice): repeated singular values, exact in floating point."""
-    value = _floats(dtype, allow_nan=False, allow_infinity=False)
-    a, b, c = draw(value), draw(value), draw(value)
-    kind = draw(st.sampled_from(["aab", "aaa", "similarity"]))
-    if kind == "aab":
-        B = torch.diag(torch.tensor([a, a, b], dtype=torch.float64))
-    elif kind == "aaa":
-        B = a * torch.eye(3, dtype=torch.float64)
-    else:
-        B = torch.tensor([[a, -b, 0.0], [b, a, 0.0], [0.0, 0.0, c]], dtype=torch.float64)
-    P1, P2 = draw(st.sampled_from(SIGNED_PERMUTATIONS)), draw(st.sampled_from(SIGNED_PERMUTATIONS))
-    return P1 @ B @ P2
-
-
-@st.composite
-def _rank_one(draw, dtype):
-    unit = st.one_of(st.just(0.0), st.floats(-1, 1))
-    u = torch.tensor(draw(st.lists(unit, min_size=3, max_size=3)), dtype=torch.float64)
-    v = torch.tensor(draw(st.lists(unit, min_size=3, max_size=3)), dtype=torch.float64)
-    lo, hi = _exponent_range(dtype)
-    return scale_pow2(torch.outer(u, v), draw(st.integers(lo, hi)))
-
-
-@st.composite
-def _quaternion_rotation(draw):
-    """A rotation from a drawn quaternion (float64), or a cube rotation (exact)."""
-    if draw(st.booleans()):
-        return draw(st.sampled_from(CUBE_ROTATIONS))
-    q = torch.tensor(draw(st.lists(st.floats(-1, 1), min_size=4, max_size=4)), dtype=torch.float64)
-    if float(q.norm()) < 1e-3:
-        q = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
-    q = q / q.norm()
-    return quaternion_rotation(q)
-
-
-@st.composite
-def _near_rotation(draw, dtype):
-    """A rotation times a positive scale plus a tiny perturbation (the warm
-    data of local-global solvers, at any magnitude)."""
-    R = draw(_quaternion_rotation())
-    noise = torch.tensor(draw(st.lists(st.floats(-1e-6, 1e-6), min_size=9, max_size=9)), dtype=torch.float64)
-    lo, hi = _exponent_range(dtype)
-    return scale_pow2(R + noise.view(3, 3), draw(st.integers(lo + 30, hi - 2)))
-
-
-@st.composite
-def _with_non_finite(draw, base):
-    """``base`` with 1-9 entries replaced by NaN, +Inf or -Inf."""
-    M = draw(base).clone().view(9)
-    for index in draw(st.lists(st.integers(0, 8), min_size=1, max_size=9)):
-        M[index] = draw(st.sampled_from([math.nan, math.inf, -math.inf]))
-    return M.view(3, 3)
-
-
-def matrices(dtype):
-    finite = st.one_of(
-        _elementwise(dtype), _scaled(dtype), _repeated_singular_values(dtype), _rank_one(dtype),
-        _near_rotation(dtype),
-    )
-    return st.one_of(finite, _with_non_finite(finite))
-
-
-@st.composite
-def warm_starts(draw, n: int, dtype):
-    """``(n, 3, 3)`` rotations (a few with NaN/Inf entries), or one ``(3, 3)``
-    rotation broadcast to the batch."""
-    if n and draw(st.integers(0, 4)) == 0:
-        return draw(_quaternion_rotation()).to(dtype)
-    inits = []
-    for _ in range(n):
-        R = draw(_quaternion_rotation())
-        if draw(st.integers(0, 9)) == 0:
-            R = draw(_with_non_finite(st.just(R)))
-        inits.append(R)
-    return torch.stack(inits).to(dtype) if inits else torch.empty(0, 3, 3, dtype=dtype)
-
-
-@st.composite
-def problems(draw, dtype, max_size=40):
-    """(M (n, 3, 3), init or None, max_iter, variant) for n in 0..max_size."""
-    Ms = draw(st.lists(matrices(dtype), min_size=0, max_size=max_size))
-    M = torch.stack(Ms).to(dtype) if Ms else torch.empty(0, 3, 3, dtype=dtype)
-    init = draw(warm_starts(M.shape[0], dtype)) if draw(st.booleans()) else None
-    max_iter = draw(st.sampled_from([None, None, 1, 2, 5]))
-    variant = draw(st.sampled_from(VARIANTS))
-    return M, init, max_iter, variant
-
-
-@st.composite
-def incoming_gradients(draw, n: int, dtype):
-    """``(n, 3, 3)`` dL/dR (or dM): O(1) values, arbitrary floats (huge,
-    subnormal, +-0) or, rarely, NaN/Inf entries."""
-    kind = draw(st.sampled_from(["unit", "unit", "arbitrary", "with_non_finite"]))
-    if kind == "unit":
-        seed = draw(st.integers(0, 2**32 - 1))
-        return torch.randn(n, 3, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64).to(dtype)
-    entries = draw(st.lists(_floats(dtype, allow_nan=kind == "with_non_finite",
-                                    allow_infinity=kind == "with_non_finite"), min_size=9 * n, max_size=9 * n))
-    return torch.tensor(entries, dtype=torch.float64).view(n, 3, 3).to(dtype)
 
 
 # ---------------------------------------------------------------------------

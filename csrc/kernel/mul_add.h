@@ -21,7 +21,7 @@
 //    nanoseconds per operation (glibc's software fmaf: 22 ns, fma: 98 ns on
 //    Zen 4), slower than an SVD. That object is therefore the one kernel whose
 //    results differ from the scalar kernel's, by rounding (see
-//    kFusedMultiplyAdd and tests/test_isa.py); it meets the same accuracy
+//    kFusedMultiplyAdd and tests/test_isa_bit_identity.py); it meets the same accuracy
 //    criteria and is bit-identical across its own batch sizes, layouts and
 //    threads.
 #pragma once

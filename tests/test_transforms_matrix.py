@@ -9,35 +9,29 @@ kernel is checked against central differences, every other cell against
 eager on the CPU kernel (float64, rtol 1e-9, atol 1e-10). Compiled cells also
 check that the operator was captured in a single graph (no graph break), and
 generic cells that the pure-PyTorch kernels ran. Every target runs every
-transform in eager; which run compiled is in COMPILED. Second derivatives
-raise, in eager and compiled.
+transform in eager; which run compiled is in COMPILED.
 
 The compile backend is ``aot_eager`` (dynamo and AOTAutograd, where the
 transforms are traced; inductor only lowers the resulting graph, and costs
 seconds a graph); ``TORCHROT_TEST_COMPILE_BACKEND=inductor`` runs the matrix
-with inductor, and the issue's two examples always run with the default
-backend.
+with inductor.
 """
 from __future__ import annotations
 
 import collections
 import contextlib
-import os
 
 import pytest
 import torch
 import torch.autograd.forward_ad as fwAD
 from torch._dynamo.backends.registry import lookup_backend
-from torch.func import grad, hessian, jacfwd, jacrev, jvp, vjp, vmap
+from torch.func import grad, jacfwd, jacrev, jvp, vjp, vmap
+from transforms_helpers import BACKEND, _central_jacobians, _directions, _inputs
 
 import torchrot
 from torchrot._extension import torch_release as release_of
 from torchrot.nn import RigidRegistration, RotationFit
 from torchrot.testing import generic_kernel
-
-BACKEND = os.environ.get("TORCHROT_TEST_COMPILE_BACKEND", "aot_eager")
-SECOND_DERIVATIVE = "second derivatives are not implemented"
-
 
 # ---------------------------------------------------------------------------
 # The device-generic path on CPU (torchrot.testing.generic_kernel)
@@ -98,29 +92,6 @@ TARGETS = {
 }
 
 
-def _inputs(target: str, name: str):
-    """(P, C): float64, batch 4."""
-    gen = torch.Generator().manual_seed(7)
-    if target in ("rigid_registration", "RigidRegistration"):
-        x = torch.randn(4, 5, 3, generator=gen, dtype=torch.float64)
-        R = torchrot.fit_rotation(torch.randn(4, 3, 3, generator=gen, dtype=torch.float64))
-        y = 1.3 * x @ R.mT + 0.1 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
-        w = torch.rand(4, 5, generator=gen, dtype=torch.float64) + 0.5
-        return x, ((y, w) if target == "rigid_registration" else (y,))
-    if name == "identity":
-        M = torch.eye(3, dtype=torch.float64).repeat(4, 1, 1)
-    else:
-        M = torch.randn(4, 3, 3, generator=gen, dtype=torch.float64)
-    return (M.reshape(4, 9) if target == "RotationFit" else M), ()
-
-
-def _directions(P, outputs):
-    gen = torch.Generator().manual_seed(11)
-    dP = torch.randn(P.shape, generator=gen, dtype=P.dtype)
-    Gs = tuple(torch.randn(o.shape, generator=gen, dtype=o.dtype) for o in outputs)
-    return dP, Gs
-
-
 def _loss(outputs, Gs):
     return sum((o * g).sum() for o, g in zip(outputs, Gs))
 
@@ -176,16 +147,6 @@ def _run(transform, fn, P, dP, Gs, C):
 # ---------------------------------------------------------------------------
 # References: central differences, eager on the CPU kernel
 # ---------------------------------------------------------------------------
-
-
-def _central_jacobians(f, P, C, h=1e-6):
-    """d outputs / dP by central differences, each ``output.shape + P.shape``
-    (all perturbations in one batched call: every target broadcasts C)."""
-    n = P.numel()
-    E = (h * torch.eye(n, dtype=P.dtype)).reshape(n, *P.shape)
-    plus, minus = f(P + E, *C), f(P - E, *C)
-    return tuple(((p - m) / (2 * h)).movedim(0, -1).reshape(*p.shape[1:], *P.shape)
-                 for p, m in zip(plus, minus))
 
 
 def _finite_difference_reference(transform, f, P, dP, Gs, C):
@@ -332,78 +293,3 @@ def test_transform_matrix(target, name, transform, mode, path, reference_calls):
         # would have left the transform to eager).
         assert len(backend.graphs) == 1, f"{len(backend.graphs)} graphs"
         assert any(op.split(".")[:2] == ["torchrot", "fit_rotation"] for op in backend.graphs[0]), backend.graphs[0]
-
-
-# ---------------------------------------------------------------------------
-# The issue's examples, with the default backend (inductor)
-# ---------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("name", ["identity", "gaussian"])
-def test_issue_examples_default_backend(name):
-    M, _ = _inputs("fit_rotation", name)
-    dM, (G,) = _directions(M, (M,))
-    tangent = lambda M, dM: jvp(torchrot.fit_rotation, (M,), (dM,))[1]  # noqa: E731
-    gradient = lambda M, G: grad(lambda m: (torchrot.fit_rotation(m) * G).sum())(M)  # noqa: E731
-    (J,) = _central_jacobians(lambda P: (torchrot.fit_rotation(P),), M, ())
-    torch.testing.assert_close(tangent(M, dM), torch.tensordot(J, dM, dims=3), rtol=1e-6, atol=1e-7)
-    torch.testing.assert_close(gradient(M, G), torch.tensordot(G, J, dims=3), rtol=1e-6, atol=1e-7)
-    for fullgraph in (False, True):
-        torch._dynamo.reset()  # each mode compiles afresh
-        torch.testing.assert_close(torch.compile(tangent, fullgraph=fullgraph)(M, dM), tangent(M, dM),
-                                   rtol=1e-9, atol=1e-10)
-        torch.testing.assert_close(torch.compile(gradient, fullgraph=fullgraph)(M, G), gradient(M, G),
-                                   rtol=1e-9, atol=1e-10)
-
-
-# ---------------------------------------------------------------------------
-# Second derivatives raise, in every mode
-# ---------------------------------------------------------------------------
-
-
-def _double_backward(m):
-    m = m.detach().requires_grad_()
-    (g,) = torch.autograd.grad(torchrot.fit_rotation(m).sum(), m, create_graph=True)
-    return torch.autograd.grad(g.sum(), m)[0]
-
-
-SECOND_ORDER = {
-    "hessian": lambda m: hessian(lambda x: torchrot.fit_rotation(x).sum())(m),
-    "jacrev_jacrev": lambda m: jacrev(jacrev(torchrot.fit_rotation))(m),
-    "jacfwd_jacfwd": lambda m: jacfwd(jacfwd(torchrot.fit_rotation))(m),  # was silently 0
-    "jacrev_jacfwd": lambda m: jacrev(jacfwd(torchrot.fit_rotation))(m),
-    "jvp_jvp": lambda m: jvp(lambda x: jvp(torchrot.fit_rotation, (x,), (m,))[1], (m,), (m,))[1],  # was 0
-    "op_jacfwd_jacfwd": lambda m: jacfwd(jacfwd(lambda x: torch.ops.torchrot.fit_rotation(x)))(m),
-    "grad_grad": lambda m: grad(lambda x: grad(lambda y: torchrot.fit_rotation(y).sum())(x).sum())(m),
-    "double_backward": _double_backward,
-}
-
-
-SECOND_ORDER_CASES = [(case, "eager") for case in SECOND_ORDER] + [
-    (case, "fullgraph") for case in ("hessian", "jacfwd_jacfwd", "jacrev_jacfwd", "jvp_jvp", "op_jacfwd_jacfwd")
-]
-
-
-@pytest.mark.parametrize("case, mode", SECOND_ORDER_CASES, ids=[f"{c}-{m}" for c, m in SECOND_ORDER_CASES])
-def test_second_derivatives_raise(case, mode):
-    M, _ = _inputs("fit_rotation", "gaussian")
-    fn = SECOND_ORDER[case]
-    if mode != "eager":
-        torch._dynamo.reset()
-        fn = torch.compile(fn, backend=BACKEND, fullgraph=True)
-    with pytest.raises(RuntimeError, match=SECOND_DERIVATIVE):
-        fn(M[0])
-
-
-def test_compiled_double_backward_raises():
-    """A first-order gradient with create_graph=True through a compiled
-    function is fine; differentiating it again raises (AOTAutograd's own
-    refusal of double backward)."""
-    torch._dynamo.reset()
-    M, _ = _inputs("fit_rotation", "gaussian")
-    M.requires_grad_()
-    loss = torch.compile(lambda m: torchrot.fit_rotation(m).sum(), backend=BACKEND, fullgraph=True)(M)
-    (g,) = torch.autograd.grad(loss, M, create_graph=True)
-    torch.testing.assert_close(g, grad(lambda m: torchrot.fit_rotation(m).sum())(M.detach()), rtol=1e-9, atol=1e-10)
-    with pytest.raises(RuntimeError, match="double backward"):
-        g.sum().backward()
