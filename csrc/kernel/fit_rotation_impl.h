@@ -21,6 +21,7 @@
 #include "maximal_objective.h"
 #include "optimality.h"
 #include "saddle_escape.h"
+#include "unit_scale.h"
 
 namespace torchrot {
 namespace kernel {
@@ -112,20 +113,8 @@ TORCHROT_INLINE LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<
   const V max_abs = max_abs_entry<L>(M);  // NaN if any entry is NaN
   Mask finite = L::is_finite(max_abs);
 
-  // Scale to max |entry| = 1: the maximiser is unchanged and no product in a
-  // step can over- or underflow. 1 / subnormal may overflow, so those lanes
-  // are first lifted by 2^digits (exact). M = 0 stays 0.
-  // Blocks without such lanes skip the lift: x * 1 is x, bit for bit.
   const Mask zero = L::eq(max_abs, V(0));
-  const Mask below_normal = L::lt(max_abs, V(std::numeric_limits<T>::min()));  // zero included
-  if (L::any(below_normal)) {
-    const V lift = L::select(below_normal, V(std::ldexp(T(1), std::numeric_limits<T>::digits)), V(1));
-    const V inv = L::select(zero, V(0), V(1) / (max_abs * lift));
-    for (int k = 0; k < 9; ++k) s.A.a[k] = (M.a[k] * lift) * inv;
-  } else {
-    const V inv = V(1) / max_abs;
-    for (int k = 0; k < 9; ++k) s.A.a[k] = M.a[k] * inv;
-  }
+  s.A = unit_scale<L>(M, max_abs).A;  // max |entry| 1: the maximiser is unchanged
 
   if (init != nullptr && init_known_clean) {
     s.R = *init;

@@ -33,6 +33,7 @@
 #include "force_inline.h"
 #include "lanes.h"
 #include "mat3.h"
+#include "unit_scale.h"
 
 namespace torchrot {
 namespace kernel {
@@ -72,14 +73,12 @@ TORCHROT_INLINE Mat3<typename L::V> rotation_tangent(const Mat3<typename L::V>& 
   using T = typename L::Scalar;
   using V = typename L::V;
   // |M|_F without overflow or underflow: scale by the largest entry first
-  // (lifting subnormal maxima exactly, as begin_fit does).
+  // (exactly, as begin_fit does).
   const V max_abs = max_abs_entry<L>(M);  // NaN if any entry is NaN
-  const V lift = L::select(L::lt(max_abs, V(std::numeric_limits<T>::min())),
-                           V(std::ldexp(T(1), std::numeric_limits<T>::digits)), V(1));
   const auto zero = L::eq(max_abs, V(0));
-  const V inv_max = L::select(zero, V(0), V(1) / (max_abs * lift));
-  Mat3<V> A;  // M / max |M_ij|
-  for (int k = 0; k < 9; ++k) A.a[k] = (M.a[k] * lift) * inv_max;
+  const UnitScale<V> unit = unit_scale<L>(M, max_abs);
+  const Mat3<V>& A = unit.A;  // M / max |M_ij|
+  const V lift = unit.lift, inv_max = unit.inv;
   V frob2(0);
   for (int k = 0; k < 9; ++k) frob2 = mul_add(A.a[k], A.a[k], frob2);
   const V frob = L::select(zero, V(1), L::sqrt(frob2));  // |A|_F in [1, 3]

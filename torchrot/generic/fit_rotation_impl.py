@@ -49,14 +49,18 @@ def _dtype_name(dtype: torch.dtype) -> str:
 
 
 def _normalized(M):
-    """M / max|M| entrywise, subnormal-scaled matrices lifted by 2^(digits+1)
-    first (as the kernel): (A, max_abs, zero, lift, inv) with A = (M lift) inv."""
+    """M / max|M| entrywise, as the kernel scales it (csrc/kernel/unit_scale.h):
+    a maximum outside the normal range, whose reciprocal is not a normal
+    number, is first lifted by 2^digits (subnormal) or dropped by 2^-digits
+    (above 1 / tiny): (A, max_abs, zero, lift, inv) with A = (M lift) inv."""
     max_abs = M[0].abs()
     for x in M[1:]:
         max_abs = torch.maximum(max_abs, x.abs())  # NaN propagates
     finfo = torch.finfo(M[0].dtype)
     digits = round(-math.log2(finfo.eps)) + 1
-    lift = torch.where(max_abs < finfo.tiny, torch.full_like(max_abs, float(2**digits)), torch.ones_like(max_abs))
+    ones = torch.ones_like(max_abs)
+    lift = torch.where(max_abs < finfo.tiny, float(2**digits),
+                       torch.where(max_abs > 1 / finfo.tiny, float(2**-digits), ones))
     zero = max_abs == 0
     inv = torch.where(zero, 0.0, 1 / torch.where(zero, 1.0, max_abs * lift))
     return [(x * lift) * inv for x in M], max_abs, zero, lift, inv

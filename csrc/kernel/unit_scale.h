@@ -1,0 +1,61 @@
+// Scaling a matrix to max |entry| 1, exactly where it matters: the maximiser
+// of tr(R^T M) is unchanged, and no product in a Cayley step or in the
+// derivative can over- or underflow. Shared by the fit (begin_fit) and the
+// derivative (rotation_tangent); torchrot/generic/fit_rotation_impl.py's
+// _normalized mirrors it.
+#pragma once
+
+#include <cmath>
+#include <limits>
+
+#include "force_inline.h"
+#include "lanes.h"
+
+namespace torchrot {
+namespace kernel {
+inline namespace CPU_CAPABILITY {
+namespace {
+
+template <typename V>
+struct UnitScale {
+  Mat3<V> A;  // (M * lift) * inv: M scaled to max |entry| 1 (0 for M = 0)
+  V lift;     // an exact power of two: 2^digits, 2^-digits or 1
+  V inv;      // 1 / (max_abs * lift), 0 for M = 0
+};
+
+// M scaled by 1 / max_abs (max_abs = max_abs_entry(M)). The reciprocal of a
+// maximum outside the normal range is not a normal number (1 / subnormal may
+// overflow; 1 / max_abs is subnormal above 1 / T_min, and the fitting kernels
+// flush subnormal results to zero, cpu/flush_to_zero.h), so such lanes are
+// first lifted by 2^digits or dropped by 2^-digits (exact but for entries far
+// below the maximum). Blocks without such lanes skip it: x * 1 is x, bit for
+// bit.
+template <typename L>
+TORCHROT_INLINE UnitScale<typename L::V> unit_scale(const Mat3<typename L::V>& M, typename L::V max_abs) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  UnitScale<V> s;
+  const auto zero = L::eq(max_abs, V(0));
+  const auto below_normal = L::lt(max_abs, V(std::numeric_limits<T>::min()));  // zero included
+  const auto above_reciprocal = L::gt(max_abs, V(T(1) / std::numeric_limits<T>::min()));
+  const auto special = L::mask_or(below_normal, above_reciprocal);
+  if (L::any(special)) {
+    constexpr int kDigits = std::numeric_limits<T>::digits;
+    s.lift = L::select(below_normal, V(std::ldexp(T(1), kDigits)),
+                       L::select(above_reciprocal, V(std::ldexp(T(1), -kDigits)), V(1)));
+    s.inv = L::select(zero, V(0), V(1) / (max_abs * s.lift));
+    // The other lanes take M * inv itself: under flush-to-zero, M * 1 would
+    // already flush a subnormal entry of a matrix whose maximum is normal.
+    for (int k = 0; k < 9; ++k) s.A.a[k] = L::select(special, (M.a[k] * s.lift) * s.inv, M.a[k] * s.inv);
+  } else {
+    s.lift = V(1);
+    s.inv = V(1) / max_abs;
+    for (int k = 0; k < 9; ++k) s.A.a[k] = M.a[k] * s.inv;
+  }
+  return s;
+}
+
+}  // namespace
+}  // namespace CPU_CAPABILITY
+}  // namespace kernel
+}  // namespace torchrot

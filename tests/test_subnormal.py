@@ -1,0 +1,99 @@
+"""Subnormal numbers and the ends of the floating-point range.
+
+On x86-64 the fitting kernels flush subnormal results to zero while they run
+(csrc/cpu/flush_to_zero.h), so that solver data whose entries span many
+orders of magnitude does not run through the cores' slow subnormal path.
+What that must not change: subnormal inputs are read as they are (scaled, not
+flushed), a matrix whose largest entry is beyond 1 / tiny (whose reciprocal
+is subnormal) is scaled exactly (csrc/kernel/unit_scale.h), a lane's result
+does not depend on its neighbours in a SIMD block, and the caller's
+floating-point mode is the same after a call as before it.
+
+Convention: R (det +1) maximises tr(R^T M); column vectors.
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchrot
+from torchrot.testing import available_cpu_kernels, conditioning, cpu_kernel, dtype_id, rotation_svd
+
+DTYPES = (torch.float32, torch.float64)
+
+
+def _subnormal_product(dtype: torch.dtype) -> torch.Tensor:
+    """tiny * 0.5: a subnormal number, or 0 where results are flushed."""
+    return torch.tensor(torch.finfo(dtype).tiny, dtype=dtype) * 0.5
+
+
+@pytest.mark.parametrize("flush", [False, True])
+def test_callers_floating_point_mode_is_restored(flush):
+    M = torch.randn(100, 3, 3)
+    previous = torch.set_flush_denormal(flush)
+    try:
+        if flush and not previous and not torch.set_flush_denormal(True):
+            pytest.skip("this CPU has no flush-to-zero mode")
+        for max_iter in (None, 1):
+            torchrot.fit_rotation(M, max_iter=max_iter)
+            torchrot.fit_rotation(M, torchrot.fit_rotation(M), max_iter=max_iter, out=torch.empty_like(M))
+            flushed = bool(_subnormal_product(torch.float32) == 0)
+            assert flushed == flush, f"after a fit (max_iter={max_iter}) flush-to-zero is {flushed}, was {flush}"
+    finally:
+        torch.set_flush_denormal(False)
+
+
+def _rank1(value: float, dtype: torch.dtype) -> torch.Tensor:
+    """value * e2 e1^T: its maximiser maps e1 to e2."""
+    M = torch.zeros(3, 3, dtype=dtype)
+    M[1, 0] = value
+    return M
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
+@pytest.mark.parametrize("kernel", available_cpu_kernels())
+def test_largest_entry_beyond_reciprocal_of_tiny(kernel, dtype):
+    """A largest entry above 1 / tiny (its reciprocal subnormal) is scaled by an exact power of two."""
+    finfo = torch.finfo(dtype)
+    values = [1.5 / finfo.tiny, finfo.max, 1 / finfo.tiny, 1.0]
+    M = torch.stack([_rank1(v, dtype) for v in values])
+    with cpu_kernel(kernel):
+        R = torchrot.fit_rotation(M)
+    maps_e1_to_e2 = R[:, :, 0]
+    expected = torch.tensor([0.0, 1.0, 0.0], dtype=dtype).expand(len(values), 3)
+    assert torch.equal(maps_e1_to_e2, expected), maps_e1_to_e2
+
+
+def _mixed_block(dtype: torch.dtype, n: int = 64) -> torch.Tensor:
+    """Random matrices at the edges of the range, mixed in every SIMD block: a
+    largest entry just above tiny with subnormal others, subnormal maxima,
+    largest entries beyond 1 / tiny, and ordinary ones."""
+    gen = torch.Generator().manual_seed(7)
+    tiny = torch.finfo(dtype).tiny
+    scales = torch.tensor([1.6 * tiny, 0.3 * tiny, 4.0 / tiny, 1.0], dtype=torch.float64)
+    M = torch.randn(n, 3, 3, generator=gen, dtype=torch.float64)
+    M = M / M.abs().amax((-2, -1), keepdim=True)  # largest entry 1
+    M = M * scales[torch.arange(n) % len(scales)].view(n, 1, 1).clamp_max(torch.finfo(dtype).max)
+    return M.to(dtype)
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
+@pytest.mark.parametrize("kernel", available_cpu_kernels())
+@pytest.mark.parametrize("max_iter", [None, 1])
+def test_edges_of_the_range_in_mixed_blocks(kernel, dtype, max_iter):
+    """Each matrix gets the result it gets alone, whatever its neighbours, and
+    a converged fit is the SVD's rotation (found: a neighbour beyond 1 / tiny
+    sent a block through the exact scaling, where M * 1 flushed the subnormal
+    entries of a matrix whose largest entry was normal)."""
+    M = _mixed_block(dtype)
+    assert bool(((M.abs() < torch.finfo(dtype).tiny) & (M != 0)).any()), "the data holds subnormal entries"
+    with cpu_kernel(kernel):
+        R = torchrot.fit_rotation(M, max_iter=max_iter)
+        alone = torch.stack([torchrot.fit_rotation(m, max_iter=max_iter) for m in M])
+    assert torch.equal(R, alone)
+    if max_iter is None:
+        # Scaled exactly by powers of two, the float64 SVD's rotation is the reference.
+        unit = M.double() / M.double().abs().amax((-2, -1), keepdim=True)
+        distance = (R.double() - rotation_svd(unit)).norm(dim=(-2, -1))
+        worst = (distance / (torch.finfo(dtype).eps * conditioning(unit))).max().item()
+        assert worst <= 64, f"|R - R*| = {worst:.3g} eps kappa"  # as tests/test_warm_start_precision.py
