@@ -17,7 +17,9 @@
 // 64 matrices.) The derivative is the optimality-condition tangent of
 // csrc/kernel/rotation_gradient.h, the operator torchrot::fit_rotation_backward.
 
-#include <ATen/ATen.h>
+#include <ATen/core/LegacyTypeDispatch.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/core/grad_mode.h>
 #include <torch/csrc/autograd/custom_function.h>
 #include <torch/library.h>
 
