@@ -1,13 +1,10 @@
 """Subnormal numbers and the ends of the floating-point range.
 
-On x86-64 the fitting kernels flush subnormal results to zero while they run
-(csrc/cpu/flush_to_zero.h), so that solver data whose entries span many
-orders of magnitude does not run through the cores' slow subnormal path.
-What that must not change: subnormal inputs are read as they are (scaled, not
-flushed), a matrix whose largest entry is beyond 1 / tiny (whose reciprocal
-is subnormal) is scaled exactly (csrc/kernel/unit_scale.h), a lane's result
-does not depend on its neighbours in a SIMD block, and the caller's
-floating-point mode is the same after a call as before it.
+Subnormal inputs are read as they are, a matrix whose largest entry is beyond
+1 / tiny (whose reciprocal is subnormal) is scaled exactly
+(csrc/kernel/unit_scale.h), a lane's result does not depend on its neighbours
+in a SIMD block, and a call leaves the caller's floating-point mode
+(torch.set_flush_denormal) as it was.
 
 Convention: R (det +1) maximises tr(R^T M); column vectors.
 """
@@ -81,10 +78,9 @@ def _mixed_block(dtype: torch.dtype, n: int = 64) -> torch.Tensor:
 @pytest.mark.parametrize("kernel", available_cpu_kernels())
 @pytest.mark.parametrize("max_iter", [None, 1])
 def test_edges_of_the_range_in_mixed_blocks(kernel, dtype, max_iter):
-    """Each matrix gets the result it gets alone, whatever its neighbours, and
-    a converged fit is the SVD's rotation (found: a neighbour beyond 1 / tiny
-    sent a block through the exact scaling, where M * 1 flushed the subnormal
-    entries of a matrix whose largest entry was normal)."""
+    """Each matrix gets the result it gets alone, whatever its neighbours (a
+    neighbour beyond 1 / tiny or below it sends a block through the exact
+    scaling), and a converged fit is the SVD's rotation."""
     M = _mixed_block(dtype)
     assert bool(((M.abs() < torch.finfo(dtype).tiny) & (M != 0)).any()), "the data holds subnormal entries"
     with cpu_kernel(kernel):
@@ -97,3 +93,16 @@ def test_edges_of_the_range_in_mixed_blocks(kernel, dtype, max_iter):
         distance = (R.double() - rotation_svd(unit)).norm(dim=(-2, -1))
         worst = (distance / (torch.finfo(dtype).eps * conditioning(unit))).max().item()
         assert worst <= 64, f"|R - R*| = {worst:.3g} eps kappa"  # as tests/test_warm_start_precision.py
+
+
+@pytest.mark.parametrize("kernel", available_cpu_kernels())
+def test_scaled_signed_permutation_meets_criteria(kernel, assert_meets_criteria):
+    """A fuzz case whose steps divide quantities near the subnormal range: in a
+    flush-to-zero mode of the kernels' own its result lost orthonormality
+    (6e-6 on the default kernel), which is why they run in the caller's mode."""
+    M = torch.tensor([[-1652449792.0, 0.0, 1.401298464324817e-45], [1.0000001192092896, 0.0, 1652449792.0],
+                      [0.0, -1652449792.0, 0.0]]).expand(16, 3, 3).contiguous()
+    for variant in ("newton", "conservative", "gershgorin"):
+        with cpu_kernel(kernel):
+            R = torchrot.fit_rotation(M, variant=variant)
+        assert_meets_criteria(R, M, torch.float32, f"{kernel} {variant}")

@@ -25,11 +25,9 @@ struct UnitScale {
 
 // M scaled by 1 / max_abs (max_abs = max_abs_entry(M)). The reciprocal of a
 // maximum outside the normal range is not a normal number (1 / subnormal may
-// overflow; 1 / max_abs is subnormal above 1 / T_min, and the fitting kernels
-// flush subnormal results to zero, cpu/flush_to_zero.h), so such lanes are
-// first lifted by 2^digits or dropped by 2^-digits (exact but for entries far
-// below the maximum). Blocks without such lanes skip it: x * 1 is x, bit for
-// bit.
+// overflow; above 1 / T_min, 1 / max_abs is subnormal and has lost bits), so
+// such lanes are first lifted by 2^digits or dropped by 2^-digits (exact but
+// for entries far below the maximum). Blocks without such lanes skip it.
 template <typename L>
 TORCHROT_INLINE UnitScale<typename L::V> unit_scale(const Mat3<typename L::V>& M, typename L::V max_abs) {
   using T = typename L::Scalar;
@@ -44,8 +42,7 @@ TORCHROT_INLINE UnitScale<typename L::V> unit_scale(const Mat3<typename L::V>& M
     s.lift = L::select(below_normal, V(std::ldexp(T(1), kDigits)),
                        L::select(above_reciprocal, V(std::ldexp(T(1), -kDigits)), V(1)));
     s.inv = L::select(zero, V(0), V(1) / (max_abs * s.lift));
-    // The other lanes take M * inv itself: under flush-to-zero, M * 1 would
-    // already flush a subnormal entry of a matrix whose maximum is normal.
+    // The other lanes take M * inv, as in blocks without such lanes.
     for (int k = 0; k < 9; ++k) s.A.a[k] = L::select(special, (M.a[k] * s.lift) * s.inv, M.a[k] * s.inv);
   } else {
     s.lift = V(1);
