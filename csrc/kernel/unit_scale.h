@@ -42,8 +42,7 @@ TORCHROT_INLINE UnitScale<typename L::V> unit_scale(const Mat3<typename L::V>& M
     s.lift = L::select(below_normal, V(std::ldexp(T(1), kDigits)),
                        L::select(above_reciprocal, V(std::ldexp(T(1), -kDigits)), V(1)));
     s.inv = L::select(zero, V(0), V(1) / (max_abs * s.lift));
-    // The other lanes take M * inv, as in blocks without such lanes.
-    for (int k = 0; k < 9; ++k) s.A.a[k] = L::select(special, (M.a[k] * s.lift) * s.inv, M.a[k] * s.inv);
+    for (int k = 0; k < 9; ++k) s.A.a[k] = (M.a[k] * s.lift) * s.inv;  // x * 1 is x, bit for bit
   } else {
     s.lift = V(1);
     s.inv = V(1) / max_abs;
