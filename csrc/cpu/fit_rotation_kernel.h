@@ -16,6 +16,7 @@
 
 #include "../kernel/fit_rotation_impl.h"
 #include "block_io.h"
+#include "flush_to_zero.h"
 #include "kernel_table.h"
 
 namespace torchrot {
@@ -214,6 +215,7 @@ int64_t fit_batch(const BatchArgs<typename L::Scalar>& args) {
   // instructions per matrix in one loop with the cold start's code).
   const auto run = [&](auto one_step, auto cold) {
     parallel_blocks(args.n, L::width, kGrainSize, [&](int64_t begin, int64_t end) {
+      const FlushToZero flush_to_zero;  // in the thread that runs the range
       run_block_paths<L>(path, begin, end, [&](auto block_path, int64_t b, int64_t e) {
         bad_inits += fit_range<L, block_path.value, one_step.value, cold.value>(args, b, e);
       });
@@ -240,6 +242,7 @@ WarmStartCount count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& ar
   const BlockPath path = full_block_path(L::width, {&args.layout});
   std::atomic<int64_t> bad{0}, unclean{0};
   parallel_blocks(args.n, L::width, kGrainSize, [&](int64_t begin, int64_t end) {
+    const FlushToZero flush_to_zero;  // as the fit that trusts this count computes
     int64_t local_bad = 0, local_unclean = 0;
     run_block_paths<L>(path, begin, end, [&](auto block_path, int64_t b, int64_t e) {
       for (int64_t first = b; first < e; first += L::width) {

@@ -145,23 +145,30 @@ TORCHROT_INLINE CayleyStep<V> cayley_step(const Mat3<V>& S, V c) {
 // K is as small as the step, and so is its rounding: Q's diagonal rounded
 // near 1 would add a few eps to the orthonormality error of every R it
 // rotates (see rotate_by).
+// Every product of two components of (d, w) is formed as u (v * 2 / (d^2 +
+// w.w)): each factor is then at most about 2 / |(d, w)| and the product at
+// most 2, so a product below the normal range (flushed to zero, see
+// cpu/flush_to_zero.h) is an entry of K below it, not a part of one that the
+// division would have scaled up (u v flushed, then times 2 / |(d, w)|^2, lost
+// 1.5e-3 of an entry of K on a step with |(d, w)| ~ 1e-18: tests/test_subnormal.py).
 template <typename V>
 TORCHROT_INLINE Mat3<V> cayley_increment(const CayleyStep<V>& step) {
   const V x = step.w[0], y = step.w[1], w = step.w[2];
   const V two_inv = V(2) / (step.dd + step.ww);
-  const V two_d_inv = step.d * two_inv;
+  const V x2 = x * two_inv, y2 = y * two_inv, w2 = w * two_inv, d2 = step.d * two_inv;
+  const V yy = y * y2, ww = w * w2;
   Mat3<V> K;
-  K(0, 0) = -(mul_add(y, y, w * w) * two_inv);
-  K(1, 1) = -(mul_add(x, x, w * w) * two_inv);
-  K(2, 2) = -(mul_add(x, x, y * y) * two_inv);
-  const V xy = x * y * two_inv, xw = x * w * two_inv, yw = y * w * two_inv;
-  // xy +- w two_d_inv, ... (one rounding each, mul_add.h)
-  K(0, 1) = mul_add(w, two_d_inv, xy);
-  K(1, 0) = mul_add(-w, two_d_inv, xy);
-  K(0, 2) = mul_add(-y, two_d_inv, xw);
-  K(2, 0) = mul_add(y, two_d_inv, xw);
-  K(1, 2) = mul_add(x, two_d_inv, yw);
-  K(2, 1) = mul_add(-x, two_d_inv, yw);
+  K(0, 0) = -mul_add(y, y2, ww);
+  K(1, 1) = -mul_add(x, x2, ww);
+  K(2, 2) = -mul_add(x, x2, yy);
+  const V xy = x * y2, xw = x * w2, yw = y * w2;
+  // xy +- w d2, ... (one rounding each, mul_add.h)
+  K(0, 1) = mul_add(w, d2, xy);
+  K(1, 0) = mul_add(-w, d2, xy);
+  K(0, 2) = mul_add(-y, d2, xw);
+  K(2, 0) = mul_add(y, d2, xw);
+  K(1, 2) = mul_add(x, d2, yw);
+  K(2, 1) = mul_add(-x, d2, yw);
   return K;
 }
 

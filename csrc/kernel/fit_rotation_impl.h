@@ -140,18 +140,20 @@ TORCHROT_INLINE LaneState<L> begin_fit(const Mat3<typename L::V>& M, const Mat3<
 }
 
 // Whether a lane can take `step`. A singular H (or a non-finite step) takes
-// no step; nor does a step whose d^2 + w.w is below the smallest normal
-// number: 2 / (d^2 + w.w) in cayley_increment would overflow and make R Inf/NaN
-// (d and w have lost their precision by then anyway). Since |S| >= 1 after
-// normalisation, that means H is singular to working precision (a flat
-// objective).
+// no step; nor does a step whose d^2 + w.w is below T_min / eps^2 (T_min: the
+// smallest normal number). A square of a component below sqrt(T_min) is
+// flushed to zero (cpu/flush_to_zero.h), so above that floor what is lost is
+// below eps^2 of d^2 + w.w and Q stays orthogonal; below it, d and w have
+// lost their precision anyway: since |S| >= 1 after normalisation, H is
+// singular to working precision there (a flat objective).
 template <typename L>
 TORCHROT_INLINE typename L::Mask can_take(const CayleyStep<typename L::V>& step) {
   using T = typename L::Scalar;
   using V = typename L::V;
+  constexpr T eps = std::numeric_limits<T>::epsilon();
   const V norm2 = step.dd + step.ww;
   return L::mask_and(L::mask_and(L::gt(step.dd, V(0)), L::is_finite(norm2)),
-                     L::gt(norm2, V(std::numeric_limits<T>::min())));
+                     L::gt(norm2, V(std::numeric_limits<T>::min() / (eps * eps))));
 }
 
 // Applies `step` to the running lanes that can take it (`valid`, see

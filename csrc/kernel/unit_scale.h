@@ -42,7 +42,9 @@ TORCHROT_INLINE UnitScale<typename L::V> unit_scale(const Mat3<typename L::V>& M
     s.lift = L::select(below_normal, V(std::ldexp(T(1), kDigits)),
                        L::select(above_reciprocal, V(std::ldexp(T(1), -kDigits)), V(1)));
     s.inv = L::select(zero, V(0), V(1) / (max_abs * s.lift));
-    for (int k = 0; k < 9; ++k) s.A.a[k] = (M.a[k] * s.lift) * s.inv;  // x * 1 is x, bit for bit
+    // The other lanes take M * inv, as in blocks without such lanes: M * 1
+    // would flush a subnormal entry (cpu/flush_to_zero.h) that M * inv keeps.
+    for (int k = 0; k < 9; ++k) s.A.a[k] = L::select(special, (M.a[k] * s.lift) * s.inv, M.a[k] * s.inv);
   } else {
     s.lift = V(1);
     s.inv = V(1) / max_abs;

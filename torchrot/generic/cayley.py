@@ -61,16 +61,18 @@ def _cayley_step(S, t, m, c):
 def _cayley_increment(w, d, ww, dd):
     """K = Q - I for the rotation Q of Eq. 10 with z = -w / d (cayley_increment):
     (2 w w^T - 2 (w.w) I - 2 d [w]x) / (d^2 + w.w), its diagonal
-    -2 (w.w - w_i^2) / (d^2 + w.w), as small as the step."""
+    -2 (w.w - w_i^2) / (d^2 + w.w), as small as the step; each product of two
+    components of (d, w) as u (v * 2 / (d^2 + w.w))."""
     x, y, z = w
     two_inv = 2 / (dd + ww)
-    two_d_inv = d * two_inv
-    xy, xz, yz = x * y * two_inv, x * z * two_inv, y * z * two_inv
-    dx, dy, dz = x * two_d_inv, y * two_d_inv, z * two_d_inv
+    x2, y2, z2, d2 = x * two_inv, y * two_inv, z * two_inv, d * two_inv
+    yy, zz = y * y2, z * z2
+    xy, xz, yz = x * y2, x * z2, y * z2
+    dx, dy, dz = x * d2, y * d2, z * d2
     return [
-        -((y * y + z * z) * two_inv), xy + dz, xz - dy,
-        xy - dz, -((x * x + z * z) * two_inv), yz + dx,
-        xz + dy, yz - dx, -((x * x + y * y) * two_inv),
+        -torch.addcmul(zz, y, y2), xy + dz, xz - dy,
+        xy - dz, -torch.addcmul(zz, x, x2), yz + dx,
+        xz + dy, yz - dx, -torch.addcmul(yy, x, x2),
     ]
 
 
