@@ -23,8 +23,10 @@ Prints the timings, the accuracy of each computation against the float64 SVD, an
 table of targets: each ratio against the authors' one-step, its limit, whether it holds, and
 what it would be without the warm-start check (what keeping "an error changes nothing"
 costs). ``--flush-denormal`` runs both under ``torch.set_flush_denormal(True)``: recorded
-solver data make subnormal numbers inside a step, which x86 cores compute slowly (torchrot's
-kernels run in the caller's mode and do not set it themselves).
+solver data make subnormal numbers inside a step, which x86 cores compute slowly; the authors'
+kernel runs in the caller's mode, torchrot's flush subnormal results themselves
+(``csrc/cpu/flush_to_zero.h``), so the flag moves the authors' row and leaves torchrot's results
+as they are.
 
     python benchmarks/authors_kernel.py --source PATH/TO/fast-rotation-fitting [--n 1000000] [--data arap]
 
