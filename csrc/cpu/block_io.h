@@ -71,7 +71,7 @@ inline bool is_soa_batch(const Layout& layout) { return layout.stride[0] == 1; }
 // cache line of the block's 9 W values, for the hours when this VM's
 // hardware prefetchers left the contiguous loops waiting on memory at
 // N = 1e6 (2-3x slower then; in other hours the prefetch changes nothing:
-// measured in benchmarks/README.md, "Fewer instructions").
+// measured in benchmarks/lab_notes.md, "Fewer instructions").
 constexpr int64_t kPrefetchBlocks = 4;
 
 template <typename L, int kWrite>
