@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 import pickle
 
 import pytest
@@ -250,6 +251,11 @@ def _ddp_worker(rank: int, init_file: str, result_file: str, train: bool) -> Non
         torch.save(result, f"{result_file}.{rank}")
     finally:
         dist.destroy_process_group()
+    # Leave without the interpreter's teardown: under torch 2.12.1 a gloo
+    # thread still joinable then aborted the process ("terminate called
+    # without an active exception") in 2 of 10 runs, after its results were
+    # saved; with os._exit, 0 of 20. An exception above still fails the spawn.
+    os._exit(0)
 
 
 @pytest.fixture(scope="module")
