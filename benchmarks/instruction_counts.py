@@ -70,6 +70,10 @@ def _worker(kernels: list[str], sizes: list[int]) -> None:
     that ran (a kernel the CPU lacks is capped by cpu_kernel) on stderr."""
     from torchrot.testing.kernels import cpu_kernel
 
+    # The counter reports its counts on the stdout this process inherited:
+    # whatever the worker prints (the ARAP recording's progress on a machine
+    # without the data cached) goes to stderr instead.
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
     torch.set_num_threads(1)  # the kernel runs on the traced thread
     cases = {n: _cases(n) for n in sizes}
     for name in cases[sizes[0]]:
