@@ -12,6 +12,8 @@ Convention: R (det +1) maximises tr(R^T M); column vectors.
 """
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import torch
 
@@ -26,20 +28,29 @@ def _subnormal_product(dtype: torch.dtype) -> torch.Tensor:
     return torch.tensor(torch.finfo(dtype).tiny, dtype=dtype) * 0.5
 
 
-@pytest.mark.parametrize("flush", [False, True])
-def test_callers_floating_point_mode_is_restored(flush):
-    M = torch.randn(100, 3, 3)
+@contextlib.contextmanager
+def _callers_mode(flush: bool):
+    """The caller's floating-point mode set to flush subnormal numbers (results
+    and inputs) or not, restored to torch's default after; skips where the CPU
+    has no such mode and flushing is asked for."""
     supported = torch.set_flush_denormal(flush)  # whether the CPU has the mode, not the previous mode
     try:
         if flush and not supported:
             pytest.skip("this CPU has no flush-to-zero mode")
+        yield
+    finally:
+        torch.set_flush_denormal(False)  # torch's default
+
+
+@pytest.mark.parametrize("flush", [False, True])
+def test_callers_floating_point_mode_is_restored(flush):
+    M = torch.randn(100, 3, 3)
+    with _callers_mode(flush):
         for max_iter in (None, 1):
             torchrot.fit_rotation(M, max_iter=max_iter)
             torchrot.fit_rotation(M, torchrot.fit_rotation(M), max_iter=max_iter, out=torch.empty_like(M))
             flushed = bool(_subnormal_product(torch.float32) == 0)
             assert flushed == flush, f"after a fit (max_iter={max_iter}) flush-to-zero is {flushed}, was {flush}"
-    finally:
-        torch.set_flush_denormal(False)  # torch's default
 
 
 def _rank1(value: float, dtype: torch.dtype) -> torch.Tensor:
@@ -140,11 +151,6 @@ def test_result_does_not_depend_on_callers_mode(kernel, dtype, max_iter):
     assert not bool(((M.abs() < torch.finfo(dtype).tiny) & (M != 0)).any())
     results = []
     for flush in (False, True):
-        if not torch.set_flush_denormal(flush):
-            pytest.skip("this CPU has no flush-to-zero mode")
-        try:
-            with cpu_kernel(kernel):
-                results.append(torchrot.fit_rotation(M, init, max_iter=max_iter))
-        finally:
-            torch.set_flush_denormal(False)
+        with _callers_mode(flush), cpu_kernel(kernel):
+            results.append(torchrot.fit_rotation(M, init, max_iter=max_iter))
     assert torch.equal(results[0], results[1])
