@@ -4,6 +4,9 @@ every path on any machine."""
 from __future__ import annotations
 
 import contextlib
+import importlib.util
+import os
+import sys
 import warnings
 from collections.abc import Iterator
 
@@ -12,7 +15,7 @@ import torch
 from torchrot._constants import CPU_KERNELS
 
 __all__ = ['CPU_KERNELS', 'rounds_like_scalar', 'rounding_reference', 'cpu_kernel', 'available_cpu_kernels',
-           'generic_kernel']
+           'generic_kernel', 'triton_kernel', 'triton_interpreter_unavailable']
 
 
 def rounds_like_scalar(name: str) -> bool:
@@ -97,13 +100,30 @@ def available_cpu_kernels() -> tuple[str, ...]:
     return tuple(found)
 
 @contextlib.contextmanager
+def _cpu_kernels_shadowed_by(kernels: dict) -> Iterator[None]:
+    """Registers ``kernels`` (operator name -> Python kernel) as the CPU
+    kernels of torch.ops.torchrot.* while it lasts; leaving restores the C++ ones."""
+    library = torch.library.Library("torchrot", "IMPL")
+    try:
+        with warnings.catch_warnings():
+            # "Overriding a previously registered kernel": that is the point.
+            warnings.filterwarnings(
+                "ignore", message=".*(Overriding a previously registered kernel|operators may also be overridden)")
+            for name, kernel in kernels.items():
+                library.impl(name, kernel, "CPU")
+        yield
+    finally:
+        library._destroy()
+
+
+@contextlib.contextmanager
 def generic_kernel() -> Iterator[None]:
     """``with generic_kernel(): ...`` runs ``torch.ops.torchrot.*`` on CPU
-    tensors with the device-generic kernels (pure PyTorch, what CUDA, XPU and
-    MPS tensors run) instead of the C++ ones, so that the same tests check
-    both paths on any machine. Process-wide while it lasts (it registers
-    CPU kernels that shadow the C++ ones; leaving restores them): not for
-    multi-threaded use.
+    tensors with the device-generic kernels (pure PyTorch, what MPS tensors
+    run, and CUDA and XPU tensors where Triton is missing) instead of the C++
+    ones, so that the same tests check both paths on any machine.
+    Process-wide while it lasts (it registers CPU kernels that shadow the C++
+    ones; leaving restores them): not for multi-threaded use.
 
     Examples:
         >>> from torchrot.testing import generic_kernel
@@ -115,14 +135,78 @@ def generic_kernel() -> Iterator[None]:
     """
     from torchrot._device_kernels import GENERIC_KERNELS
 
-    library = torch.library.Library("torchrot", "IMPL")
+    with _cpu_kernels_shadowed_by(GENERIC_KERNELS):
+        yield
+
+
+_TRITON_MODULE = "torchrot.triton.mul_add"  # imported by every Triton kernel of torchrot
+
+
+def triton_interpreter_unavailable() -> str | None:
+    """Why :func:`triton_kernel` cannot run in this process (a str), or None:
+    Triton is not installed, or torchrot's Triton kernels were already
+    imported compiled (for a GPU) in this process.
+
+    Examples:
+        >>> from torchrot.testing import triton_interpreter_unavailable
+        >>> isinstance(triton_interpreter_unavailable(), (str, type(None)))
+        True
+    """
+    if importlib.util.find_spec("triton") is None:
+        return "Triton is not installed (pip install triton; no wheel for this platform)"
+    module = sys.modules.get(_TRITON_MODULE)
+    if module is not None:
+        from triton.runtime.interpreter import InterpretedFunction
+
+        if not isinstance(module.mul_add, InterpretedFunction):
+            return ("torchrot's Triton kernels were imported compiled in this process; run the interpreter "
+                    "in another process, or with TRITON_INTERPRET=1 set before they are imported")
+    return None
+
+
+@contextlib.contextmanager
+def _triton_interpreter() -> Iterator[None]:
+    """TRITON_INTERPRET=1 while it lasts (Triton reads it where a
+    @triton.jit function is decorated, and where a launch first imports its
+    language modules); the previous value afterwards."""
+    previous = os.environ.get("TRITON_INTERPRET")
+    os.environ["TRITON_INTERPRET"] = "1"
     try:
-        with warnings.catch_warnings():
-            # "Overriding a previously registered kernel": that is the point.
-            warnings.filterwarnings(
-                "ignore", message=".*(Overriding a previously registered kernel|operators may also be overridden)")
-            for name, kernel in GENERIC_KERNELS.items():
-                library.impl(name, kernel, "CPU")
         yield
     finally:
-        library._destroy()
+        if previous is None:
+            del os.environ["TRITON_INTERPRET"]
+        else:
+            os.environ["TRITON_INTERPRET"] = previous
+
+
+@contextlib.contextmanager
+def triton_kernel() -> Iterator[None]:
+    """``with triton_kernel(): ...`` runs ``torch.ops.torchrot.*`` on CPU
+    tensors with torchrot's Triton kernels (what CUDA and XPU tensors run)
+    under Triton's interpreter, instead of the C++ ones, so that the same
+    tests check the accelerator kernels on any machine with Triton
+    installed. The interpreter runs each block with NumPy: slow, for small
+    batches. Process-wide while it lasts, like :func:`generic_kernel`; it
+    imports the Triton kernels interpreted, so a process that uses it cannot
+    also run them compiled on a GPU (:func:`triton_interpreter_unavailable`).
+
+    Raises:
+        RuntimeError: :func:`triton_interpreter_unavailable` gives a reason.
+
+    Examples:
+        >>> from torchrot.testing import triton_kernel, triton_interpreter_unavailable
+        >>> M = torch.randn(8, 3, 3, dtype=torch.float64)
+        >>> if triton_interpreter_unavailable() is None:
+        ...     with triton_kernel():
+        ...         R_triton = torchrot.fit_rotation(M)
+        ...     assert torch.equal(R_triton, torchrot.fit_rotation(M))
+    """
+    reason = triton_interpreter_unavailable()
+    if reason is not None:
+        raise RuntimeError(f"torchrot.testing.triton_kernel: {reason}")
+    with _triton_interpreter():
+        from torchrot.triton.operators import TRITON_KERNELS
+
+        with _cpu_kernels_shadowed_by(TRITON_KERNELS):
+            yield
