@@ -8,16 +8,14 @@ Convention: R (det +1) maximises tr(R^T M); column vectors.
 """
 from __future__ import annotations
 
-import contextlib
-
 import pytest
 import torch
+from kernel_paths import KERNEL_PATHS, kernel_path_params
 
 import torchrot
-from torchrot.testing import generic_kernel, make_matrices, rotations
+from torchrot.testing import make_matrices, rotations
 
 op = torch.ops.torchrot
-KERNELS = {"cpu": contextlib.nullcontext, "generic": generic_kernel}
 
 
 # id -> builder of (base, M view, init view or None, out view) over one
@@ -78,12 +76,12 @@ def _case(layout: str, dtype):
     return base, M, init, out
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("max_iter", [None, 1])
 @pytest.mark.parametrize("layout", sorted(LAYOUTS))
 def test_overlapping_out_gives_the_fresh_result(layout, max_iter, kernel, dtype):
     base, M, init, out = _case(layout, dtype)
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         # the answer: the same fit from copies of the inputs into a fresh tensor
         expected = torchrot.fit_rotation(M.clone(), None if init is None else init.clone(), max_iter=max_iter)
         torchrot.fit_rotation(M, init, max_iter=max_iter, out=out)
@@ -102,12 +100,12 @@ def test_overlapping_out_reduced_precision(low):
     assert torch.equal(out, expected)
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 def test_exact_identity_is_in_place(kernel, dtype):
     """out = M and out = init (the in-place warm-start update) need no copy."""
     M = make_matrices("warm", 50, 15, torch.float64).to(dtype)
     init = rotations(50, 16, dtype)
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         expected_M = torchrot.fit_rotation(M)
         expected_init = torchrot.fit_rotation(M, init, max_iter=1)
         M_, init_ = M.clone(), init.clone()
@@ -127,13 +125,13 @@ def test_out_from_another_storage_on_the_same_memory():
     assert torch.equal(out, expected)
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 def test_backward_arguments_may_alias(kernel, dtype):
     """grad, R and M of the derivative operator may be one tensor or views of
     one another: they are only read."""
     M = make_matrices("gaussian", 40, 18, torch.float64).to(dtype)
     R = torchrot.fit_rotation(M)
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         for grad, R_, M_ in ((M, R, M), (R, R, M), (R.mT, R, R), (M[:1].expand(40, 3, 3), R, M[:1])):
             expected = op.fit_rotation_backward(grad.clone(), R_.clone(), M_.clone(), 1e-6)
             assert torch.equal(op.fit_rotation_backward(grad, R_, M_, 1e-6), expected)

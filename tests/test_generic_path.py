@@ -8,14 +8,11 @@ confinement, and the backward's float32 accuracy (the kernel's formulation,
 no A^2). tests/test_devices.py runs it on accelerators."""
 from __future__ import annotations
 
-import warnings
-
 import pytest
 import torch
 
 import torchrot
 from torchrot import generic
-from torchrot._torch_private import compile_errors
 from torchrot.generic import driver, schedule
 from torchrot.reference import fit_rotation_backward_reference
 from torchrot.testing import (
@@ -198,25 +195,18 @@ def _converged_mix():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("start", ["warm", "cold"])
-def test_converged_compiled_as_accelerators_run_it(start, monkeypatch, assert_meets_criteria):
-    """COMPILED_DEVICE_TYPES (CUDA, XPU) run _fit_core compiled with
-    fullgraph=True; here on CPU tensors, from warm starts and from the cold
-    start (whose schedule differs: full_steps), with a straggler buffer small
-    enough to overflow: the same status codes and iteration counts as eager,
-    the criteria. A failed compile would fall back with a RuntimeWarning: an
-    error here."""
-    monkeypatch.setattr(driver, "COMPILED_DEVICE_TYPES", frozenset({"cpu"}))
-    monkeypatch.setattr(driver, "_compiled_cores", {})
+def test_converged_compiled(start, monkeypatch, assert_meets_criteria):
+    """_fit_core compiled with fullgraph=True (a caller may compile the
+    reference), from warm starts and from the cold start (whose schedule
+    differs: full_steps), with a straggler buffer small enough to overflow:
+    the same status codes and iteration counts as eager, the criteria."""
     monkeypatch.setattr(schedule, "STRAGGLER_MIN", 16)
     monkeypatch.setattr(schedule, "STRAGGLER_DIVISOR", 50)
     torch._dynamo.reset()
     M, init = _converged_mix()
     if start == "cold":
         init = None
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", RuntimeWarning)
-        R, it, st = torchrot.fit_rotation_reference(M, init, return_info=True)
-    assert driver._compiled_cores["cpu"] is not driver._fit_core
+    R, it, st = torch.compile(driver._fit_core, fullgraph=True)(M, init, None, "conservative")
     R_e, it_e, st_e = generic._fit_core(M, init, None, "conservative")
     # Degenerate maxima (M = -I: every half-turn is optimal) are decided by
     # rounding, which the compiled code does otherwise (inductor fuses
@@ -252,51 +242,3 @@ def test_escapes_and_fallbacks_match_kernel(assert_meets_criteria):
     assert_meets_criteria(R[finite], M[finite], torch.float64, "escapes and fallbacks")
 
 
-def test_failed_compile_falls_back_to_eager(monkeypatch):
-    """Where torch.compile fails (e.g. no Triton for the device: torch reports
-    that with an exception of its compiler's), the device runs the algorithm
-    eagerly from then on, after one RuntimeWarning."""
-    compile_error = compile_errors()[0]
-
-    def broken_compile(fn, **kwargs):
-        def compiled(*args):
-            raise compile_error("no backend for this device")
-        return compiled
-
-    monkeypatch.setattr(driver, "COMPILED_DEVICE_TYPES", frozenset({"cpu"}))
-    monkeypatch.setattr(driver, "_compiled_cores", {})
-    monkeypatch.setattr(driver.torch, "compile", broken_compile)
-    M = make_matrices("gaussian", 64, 44, torch.float64)
-    with pytest.warns(RuntimeWarning, match="torch.compile failed on cpu tensors .*runs eagerly"):
-        R = torchrot.fit_rotation_reference(M)
-    assert torch.equal(R, generic._fit_core(M, None, None, "conservative")[0])
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", RuntimeWarning)
-        assert torch.equal(torchrot.fit_rotation_reference(M), R)
-    assert driver._compiled_cores["cpu"] is driver._fit_core
-
-
-@pytest.mark.parametrize("error", [RuntimeError("CUDA out of memory"), ValueError("a bug"), MemoryError()],
-                         ids=lambda e: type(e).__name__)
-def test_runtime_errors_of_the_compiled_path_propagate(error, monkeypatch):
-    """Only compile failures switch a device to eager: an error raised while
-    the compiled code runs (out of memory, a bug) reaches the caller as
-    itself, and the next call runs compiled again."""
-    calls = []
-
-    def failing_compile(fn, **kwargs):
-        def compiled(*args):
-            calls.append(args)
-            raise error
-        return compiled
-
-    monkeypatch.setattr(driver, "COMPILED_DEVICE_TYPES", frozenset({"cpu"}))
-    monkeypatch.setattr(driver, "_compiled_cores", {})
-    monkeypatch.setattr(driver.torch, "compile", failing_compile)
-    M = make_matrices("gaussian", 64, 45, torch.float64)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", RuntimeWarning)  # no fallback warning
-        for _ in range(2):
-            with pytest.raises(type(error)):
-                torchrot.fit_rotation_reference(M)
-    assert len(calls) == 2 and driver._compiled_cores["cpu"] is not driver._fit_core

@@ -10,17 +10,16 @@ Convention: R (det +1) maximises tr(R^T M); column vectors.
 """
 from __future__ import annotations
 
-import contextlib
 import warnings
 
 import pytest
 import torch
+from kernel_paths import KERNEL_PATHS, kernel_path_params
 from torch.autograd import forward_ad
 
 import torchrot
-from torchrot.testing import bits, generic_kernel, make_warm_start
+from torchrot.testing import bits, make_warm_start
 
-KERNELS = {"cpu": contextlib.nullcontext, "generic": generic_kernel}
 N = 37  # a full SIMD block and a tail
 
 
@@ -42,28 +41,28 @@ def _problem(dtype, seed=3):
     return M, init
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("call", sorted(CALLS))
 @pytest.mark.parametrize("where", ["fresh", "init", "M"])
 def test_version_bumped_once_per_write(where, call, kernel, dtype):
     M, init = _problem(dtype)
     out = {"fresh": torch.empty_like(M), "init": init, "M": M}[where]
     before = out._version
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         expected = torchrot.fit_rotation(M.clone(), init.clone(), max_iter=1)
         CALLS[call](M, init, out)
     assert out._version == before + 1
     assert torch.equal(bits(out), bits(expected))
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 def test_overwritten_result_is_not_differentiated(kernel):
     """The issue's case: a result saved for backward, then overwritten in
     place by a warm-started update, must make backward raise (it returned a
     gradient of the overwritten values)."""
     M, init = _problem(torch.float64)
     x = M.clone().requires_grad_()
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         R = torchrot.fit_rotation(x)
         torchrot.fit_rotation(M + 0.1, R.detach(), max_iter=1, out=R.detach())
     # (On the generic path R is a view of the kernel's result, and torch
@@ -84,7 +83,7 @@ def _refused(call, M, init, out, error=ValueError, match=AUTOGRAD_ERROR):
         assert v is None or t._version == v
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("call", sorted(CALLS))
 @pytest.mark.parametrize("case", ["leaf out", "non-leaf out", "M", "M is out"])
 def test_requires_grad_refused_in_grad_mode(case, call, kernel, dtype):
@@ -99,25 +98,25 @@ def test_requires_grad_refused_in_grad_mode(case, call, kernel, dtype):
     else:
         M_leaf = M.clone().requires_grad_()
         args = (M_leaf, init, M_leaf)
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         _refused(CALLS[call], *args)
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("call", sorted(CALLS))
 def test_requires_grad_written_under_no_grad(call, kernel, dtype):
     """As torch's out= and in-place operators: under no_grad, a leaf that
     requires grad may be written (its version is bumped)."""
     M, init = _problem(dtype)
     out = torch.zeros_like(M).requires_grad_()
-    with KERNELS[kernel](), torch.no_grad():
+    with KERNEL_PATHS[kernel](), torch.no_grad():
         CALLS[call](M, init, out)
         expected = torchrot.fit_rotation(M, init, max_iter=1)
     assert out._version == 1 and out.requires_grad and out.is_leaf
     assert torch.equal(out.detach(), expected)
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("call", sorted(CALLS))
 def test_init_requiring_grad_is_allowed(call, kernel, dtype):
     """No gradient flows to init (the maximiser does not depend on the start),
@@ -125,20 +124,20 @@ def test_init_requiring_grad_is_allowed(call, kernel, dtype):
     nothing for it."""
     M, init = _problem(dtype)
     out = torch.empty_like(M)
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         CALLS[call](M, init.clone().requires_grad_(), out)
         expected = torchrot.fit_rotation(M, init, max_iter=1)
     assert not out.requires_grad
     assert torch.equal(out, expected)
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("call", sorted(CALLS))
 @pytest.mark.parametrize("dual", ["M", "out"])
 def test_forward_mode_tangent_refused(dual, call, kernel):
     M, init = _problem(torch.float64)
     out = torch.empty_like(M)
-    with KERNELS[kernel](), forward_ad.dual_level():
+    with KERNEL_PATHS[kernel](), forward_ad.dual_level():
         if dual == "M":
             M = forward_ad.make_dual(M, torch.ones_like(M))
         else:
@@ -146,16 +145,16 @@ def test_forward_mode_tangent_refused(dual, call, kernel):
         _refused(CALLS[call], M, init, out)
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 def test_torch_func_grad_refused(kernel):
     M, init = _problem(torch.float64)
     out = torch.zeros_like(M)
-    with KERNELS[kernel](), pytest.raises(ValueError, match=AUTOGRAD_ERROR):
+    with KERNEL_PATHS[kernel](), pytest.raises(ValueError, match=AUTOGRAD_ERROR):
         torch.func.grad(lambda m: torchrot.fit_rotation(m, init, max_iter=1, out=out).sum())(M)
     assert (out == 0).all()
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("call", sorted(CALLS))
 @pytest.mark.parametrize("inputs", ["normal", "inference"])
 def test_inference_out_written_only_in_inference_mode(inputs, call, kernel, dtype):
@@ -164,7 +163,7 @@ def test_inference_out_written_only_in_inference_mode(inputs, call, kernel, dtyp
         out = torch.zeros_like(M)
         if inputs == "inference":
             M, init = M.clone(), init.clone()
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         _refused(CALLS[call], M, init, out, match="out is an inference tensor")
         with torch.inference_mode():
             CALLS[call](M, init, out)
@@ -172,23 +171,23 @@ def test_inference_out_written_only_in_inference_mode(inputs, call, kernel, dtyp
     assert torch.equal(out, expected)
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 def test_normal_out_written_in_inference_mode(kernel, dtype):
     M, init = _problem(dtype)
     out = torch.zeros_like(M)
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         with torch.inference_mode():
             _fit_out(M, init, out)
         expected = torchrot.fit_rotation(M, init, max_iter=1)
     assert torch.equal(out, expected)
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("path", ["fit_rotation_info", "op"])
 def test_info_outputs_never_require_grad(path, kernel, dtype):
     M, init = _problem(dtype)
     M = M.clone().requires_grad_()
-    with KERNELS[kernel](), warnings.catch_warnings():
+    with KERNEL_PATHS[kernel](), warnings.catch_warnings():
         warnings.simplefilter("error")  # torch's "autograd kernel was not registered" warning
         if path == "op":
             outputs = torch.ops.torchrot.fit_rotation_info(M, init, None, "conservative")

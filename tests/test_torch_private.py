@@ -9,7 +9,6 @@ from __future__ import annotations
 import pathlib
 import re
 
-import pytest
 import torch
 from torch.autograd import forward_ad
 
@@ -104,16 +103,3 @@ def test_unwrap_dead_wrappers_and_single_level_mode():
     assert private.unwrap_dead_wrappers((M,))[0] is M
     with private.enable_single_level_autograd_function():
         pass
-
-
-def test_compile_errors_are_dynamos():
-    (error,) = private.compile_errors()
-    assert issubclass(error, Exception)
-
-    @torch.compile(fullgraph=True, backend="eager")
-    def breaks(x):
-        torch._dynamo.graph_break()
-        return x + 1
-
-    with pytest.raises(error):
-        breaks(torch.ones(2))

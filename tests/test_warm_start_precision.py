@@ -10,10 +10,9 @@ Convention: R (det +1) maximises tr(R^T M); column vectors.
 """
 from __future__ import annotations
 
-import contextlib
-
 import pytest
 import torch
+from kernel_paths import KERNEL_PATHS, kernel_path_params
 
 import torchrot
 from torchrot._constants import INIT_TOLERANCE
@@ -31,7 +30,6 @@ from torchrot.testing import (
 )
 
 LOW = (torch.float32, torch.float16, torch.bfloat16)
-KERNELS = {"cpu": contextlib.nullcontext, "generic": generic_kernel}
 N = 20_000  # per call on the C++ kernel; the generic kernel (batched PyTorch) gets N_GENERIC
 N_GENERIC = 1000
 
@@ -52,12 +50,12 @@ def _low_precision_warm_starts(low, dtype, n=N):
     return M.to(dtype), R_low.to(dtype)
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("low", LOW, ids=str)
 @pytest.mark.parametrize("max_iter", [None, 1])
 def test_lower_precision_rotations_accepted(low, max_iter, kernel, dtype):
     M, init = _low_precision_warm_starts(low, dtype, N if kernel == "cpu" else N_GENERIC)
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         R = torchrot.fit_rotation(M, init, max_iter=max_iter)
     if max_iter is None:  # converged: rotations at dtype's precision, the optimum
         _assert_rotations_at_precision(R, M, dtype, f"{low} warm start")
@@ -126,14 +124,14 @@ def test_issue_case_float32_fits_as_float64_warm_start():
     assert gap.max() <= CRITERIA[torch.float64]["shortfall"]
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("init_dtype", [torch.float64, torch.float32, torch.float16, torch.bfloat16], ids=str)
 def test_init_of_another_dtype_is_cast(init_dtype, kernel, dtype):
     """A warm start of any float dtype is accepted as it is (no cast needed by
     the caller): the result equals the fit from the init cast to M's dtype."""
     M = make_matrices("warm", 500, 36, torch.float64).to(dtype)
     init = torchrot.fit_rotation(M.double()).to(init_dtype)
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         for max_iter in (None, 1):
             R = torchrot.fit_rotation(M, init, max_iter=max_iter)
             assert R.dtype == dtype
@@ -163,7 +161,7 @@ def _not_rotations(dtype):
     return {"reflection": reflection[0], "scaled": scaled, "skewed": skewed, "zero": zero}
 
 
-@pytest.mark.parametrize("kernel", sorted(KERNELS))
+@pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("case", ["reflection", "scaled", "skewed", "zero"])
 def test_clearly_not_rotations_rejected(case, kernel, dtype):
     bad = _not_rotations(dtype)[case]
@@ -173,7 +171,7 @@ def test_clearly_not_rotations_rejected(case, kernel, dtype):
     M = make_matrices("warm", 8, 34, torch.float64).to(dtype)
     init = random_rotations(8, torch.Generator().manual_seed(35)).to(dtype)
     init[3] = bad
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         with pytest.raises(ValueError, match=r"init must hold rotations .* 1 of 8 are not: pass rotations, or no init"):
             torchrot.fit_rotation(M, init)
 
@@ -220,7 +218,7 @@ def test_chained_in_place_one_steps_do_not_drift(kernel, dtype):
     M = base.to(dtype)
     eye = torch.eye(3, dtype=torch.float64)
     worst = 0.0
-    with KERNELS[kernel]():
+    with KERNEL_PATHS[kernel]():
         for step in range(1000):
             M = M + 0.01 * torch.randn(M.shape, generator=gen, dtype=torch.float64).to(dtype)
             torchrot.fit_rotation(M, R, max_iter=1, out=R)

@@ -10,8 +10,7 @@ private modules. (The C++ side's are in csrc/torch_internals.h.)
 What they are for: the operators' Python Autograd kernel records derivatives
 at each torch.func level itself (torchrot/_autograd.py), which takes the
 dispatch and functorch internals below; the fake kernel asks a symbolic
-tensor whether it is dense; the device-generic path tells a failed
-torch.compile from an error of the compiled code.
+tensor whether it is dense.
 """
 from __future__ import annotations
 
@@ -25,7 +24,6 @@ __all__ = [
     "after_autograd_keyset",
     "any_requires_grad",
     "below_autograd",
-    "compile_errors",
     "differentiating_levels_below",
     "enable_single_level_autograd_function",
     "forward_grad_enabled",
@@ -125,14 +123,3 @@ def single_level_function(function: type[torch.autograd.Function]) -> type:
     members = {name: staticmethod(getattr(function, name)) for name in ("forward", "setup_context", "backward", "jvp")}
     members["__doc__"] = function.__doc__
     return type(function.__name__, (_SingleLevelFunction,), members)
-
-
-def compile_errors() -> tuple[type[BaseException], ...]:
-    """The exceptions by which ``torch.compile`` reports that it could not
-    compile a function (a backend that failed, e.g. no Triton for a device; a
-    graph it refuses), as opposed to errors of running the compiled code,
-    which propagate as themselves. Imported on first use: torch._dynamo is
-    slow to import."""
-    from torch._dynamo.exc import TorchDynamoException
-
-    return (TorchDynamoException,)

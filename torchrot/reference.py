@@ -6,8 +6,8 @@ algorithm as the C++ kernel (csrc/kernel/), written once in
 :mod:`torchrot.generic` as elementwise tensor operations over structure-of-arrays
 components with per-matrix masks: it runs on any device and on ``meta``
 tensors, and compiles without a graph break. It is the kernel of
-``torch.ops.torchrot.fit_rotation`` on devices without a native kernel (CUDA
-and XPU tensors run it compiled, see torchrot.generic.driver.COMPILED_DEVICE_TYPES).
+``torch.ops.torchrot.fit_rotation`` on devices without a C++ or Triton kernel
+(MPS; CUDA and XPU where Triton is missing: torchrot._device_kernels).
 
 Convention everywhere: R (det R = +1) maximises tr(R^T M); for centred point
 sets, M = sum_i w_i y_i x_i^T gives R x_i ~ y_i (column vectors).

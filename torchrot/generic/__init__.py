@@ -1,7 +1,8 @@
 """The device-generic kernel, structure of arrays: torchrot's algorithm for
-accelerators (and any device), written as elementwise tensor operations. It
-is the body of :func:`torchrot.fit_rotation_reference`, the kernel of the
-operators on every device without a native one.
+any device, written as elementwise tensor operations. It is the body of
+:func:`torchrot.fit_rotation_reference`, the kernel of the operators on
+every device without a C++ or Triton one (MPS; CUDA and XPU where Triton is
+missing), run eagerly there.
 
 Every matrix is held as 9 separate ``(n,)`` tensors (its entries, row-major),
 and every step of the C++ kernel is spelled out entry by entry, with
@@ -29,7 +30,7 @@ module                  what                                            mirrors
 ``fit_rotation_impl``   the lane state machine: step, escapes, finish   csrc/kernel/fit_rotation_impl.h
 ``control_flow``        loops and branches over lanes, eager/compiled   (none: torch.while_loop, cond)
 ``schedule``            whole-batch steps, straggler compaction         (none: csrc/cpu's regrouping)
-``driver``              _fit_core, the compile cache, the entry points  (none)
+``driver``              _fit_core and the entry points                   (none)
 ======================  ==============================================  ==================================
 
 (lanes.h, force_inline.h and mul_add.h have no counterpart: tensors are the
@@ -42,12 +43,12 @@ an escape or needing the fallback are then compacted and take the rest of
 the kernel's step budget (escapes included) and the Horn fallback (float64
 eigh) there; results are scattered back. Eagerly the compaction is exact (a
 host read) and loops stop when no lane runs. Compiled, there is no
-data-dependent shape and no graph break: the buffer has the static size
+data-dependent shape and no graph break (for callers that compile it): the buffer has the static size
 ``straggler_capacity(n)`` (cumsum + scatter), lanes that do not fit take the
 rest on the whole batch, masked, and the loops and the rare pieces are
 ``while_loop`` / ``cond`` graph operations (torchrot.generic.control_flow), so
 ``torch.compile(fullgraph=True)`` compiles the whole algorithm as one graph
-(Triton kernels on CUDA, C++ on CPU) in about two minutes on a 2-core CPU.
+(minutes: the operators no longer compile it; CUDA and XPU run torchrot.triton).
 Their predicates (whether any lane still runs) are the only values the host
 reads: one flag per loop iteration (about a dozen per call), instead of
 running the whole step budget on every lane.
@@ -55,7 +56,7 @@ running the whole step budget on every lane.
 The names below are re-exported for convenience; the code reads its tunables
 from the submodule that defines them, so patch them there:
 ``torchrot.generic.schedule`` (STRAGGLER_MIN, STRAGGLER_DIVISOR, FULL_STEPS,
-...) and ``torchrot.generic.driver`` (COMPILED_DEVICE_TYPES, _compiled_cores).
+...).
 
 Speed: benchmarks/generic_path.py.
 """
@@ -82,17 +83,13 @@ from torchrot.generic.control_flow import (
     _repeat,
 )
 from torchrot.generic.driver import (
-    COMPILED_DEVICE_TYPES,
     STATUS_BAD_INIT,
     STATUS_CAYLEY,
     STATUS_FALLBACK,
     STATUS_NON_FINITE,
-    _compiled_cores,
     _components,
     _compute_dtype,
-    _core_for,
     _fit_core,
-    _run_core,
     _warm_start_components,
     fit_rotation_backward_generic,
     fit_rotation_generic,
@@ -128,7 +125,6 @@ from torchrot.generic.schedule import (
 
 __all__ = [
     "COLD_FULL_STEPS",
-    "COMPILED_DEVICE_TYPES",
     "FULL_STEPS",
     "FULL_STEPS_MAX_ITER",
     "STATUS_BAD_INIT",

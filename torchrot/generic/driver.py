@@ -1,13 +1,15 @@
 """The driver of the device-generic kernel: (..., 3, 3) tensors in and out,
 begin (normalise, warm or cold start), the schedule, finish (NaN lanes,
-status codes), the compile cache for accelerators, and the entry points of
-torchrot.reference (fit_rotation_generic, fit_rotation_backward_generic). No
-counterpart in csrc/kernel/ (the CPU operators' drivers are csrc/ops/ and
-csrc/cpu/; begin_fit and finish are csrc/kernel/fit_rotation_impl.h's, here
-spelled out in _fit_core with that module's pieces).
+status codes), and the entry points of torchrot.reference
+(fit_rotation_generic, fit_rotation_backward_generic). No counterpart in
+csrc/kernel/ (the CPU operators' drivers are csrc/ops/ and csrc/cpu/;
+begin_fit and finish are csrc/kernel/fit_rotation_impl.h's, here spelled
+out in _fit_core with that module's pieces).
 
-COMPILED_DEVICE_TYPES and _compiled_cores are read from this module at each
-call: patch them here (torchrot.generic.driver), not on the package.
+It runs eagerly where the operators call it (MPS tensors, and CUDA and XPU
+tensors without Triton, torchrot._device_kernels); _fit_core also traces
+without a graph break, so a caller may torch.compile it
+(torchrot.generic.control_flow).
 """
 from __future__ import annotations
 
@@ -16,7 +18,6 @@ import math
 import torch
 
 from torchrot._constants import INIT_CLEAN, FitStatus
-from torchrot._torch_private import compile_errors
 from torchrot.generic.cold_start import _best_start_rotation
 from torchrot.generic.control_flow import _compiling
 from torchrot.generic.fit_rotation_impl import _dtype_name, _normalized
@@ -31,16 +32,12 @@ __all__ = [
     "STATUS_FALLBACK",
     "STATUS_BAD_INIT",
     "STATUS_NON_FINITE",
-    "COMPILED_DEVICE_TYPES",
     "fit_rotation_generic",
     "fit_rotation_backward_generic",
     "_components",
     "_warm_start_components",
     "_compute_dtype",
     "_fit_core",
-    "_compiled_cores",
-    "_core_for",
-    "_run_core",
 ]
 
 # The status codes (torchrot.FitStatus) as plain ints, which tracing takes as constants.
@@ -116,39 +113,6 @@ def _fit_core(M, init, max_iter, variant, warm=None):
     return out, iterations.reshape(batch), status.reshape(batch)
 
 
-#: Device types whose tensors run the algorithm compiled
-#: (torch.compile(fullgraph=True): fused kernels, no host read); others, and
-#: these when compilation fails (e.g. no Triton), run it eagerly.
-COMPILED_DEVICE_TYPES = frozenset({"cuda", "xpu"})
-#: device type -> its compiled _fit_core (or _fit_core itself once compilation failed there).
-_compiled_cores: dict = {}
-
-
-def _core_for(device: torch.device):
-    if device.type not in COMPILED_DEVICE_TYPES or _compiling():
-        return _fit_core
-    if device.type not in _compiled_cores:
-        _compiled_cores[device.type] = torch.compile(_fit_core, fullgraph=True)
-    return _compiled_cores[device.type]
-
-
-def _run_core(M, init, max_iter, variant, warm=None):
-    """_fit_core, compiled on COMPILED_DEVICE_TYPES; ``warm`` serves the eager
-    core only (the compiled graph computes its own from init)."""
-    core = _core_for(M.device)
-    if core is _fit_core:
-        return core(M, init, max_iter, variant, warm)
-    try:
-        return core(M, init, max_iter, variant)
-    except compile_errors() as error:  # e.g. no Triton for this device: run eagerly from now on
-        import warnings
-
-        warnings.warn(f"torchrot: torch.compile failed on {M.device.type} tensors ({type(error).__name__}: "
-                      f"{error}); the device-generic path runs eagerly", RuntimeWarning, stacklevel=3)
-        _compiled_cores[M.device.type] = _fit_core
-        return _fit_core(M, init, max_iter, variant, warm)
-
-
 def fit_rotation_generic(M, init, max_iter, variant, return_info, bad_init_error):
     """The body of fit_rotation_reference (arguments already checked): raises
     ``bad_init_error(count, total)`` for a finite warm start that is not a
@@ -160,7 +124,7 @@ def fit_rotation_generic(M, init, max_iter, variant, return_info, bad_init_error
         init_bad = warm[3]
         if bool(init_bad.any()):
             raise bad_init_error(int(init_bad.sum()), init_bad.numel())  # counted in init's own shape
-    R, iterations, status = _run_core(M, init, max_iter, variant, warm)
+    R, iterations, status = _fit_core(M, init, max_iter, variant, warm)
     return (R, iterations, status) if return_info else R
 
 

@@ -205,7 +205,11 @@ def triton_kernel() -> Iterator[None]:
     reason = triton_interpreter_unavailable()
     if reason is not None:
         raise RuntimeError(f"torchrot.testing.triton_kernel: {reason}")
-    with _triton_interpreter():
+    import numpy as np
+
+    # np.errstate: the interpreter computes with NumPy, which warns where the
+    # kernels divide by zero or meet NaN (as they do, silently, on a GPU).
+    with _triton_interpreter(), np.errstate(all="ignore"):
         from torchrot.triton.operators import TRITON_KERNELS
 
         with _cpu_kernels_shadowed_by(TRITON_KERNELS):
