@@ -8,7 +8,6 @@ Convention: R (det +1) maximises tr(R^T M); column vectors.
 """
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import pathlib
@@ -19,10 +18,11 @@ import sys
 import numpy as np
 import pytest
 import torch
+from kernel_paths import KERNEL_PATHS, kernel_path_params
 
 import torchrot
 from torchrot._constants import MAX_GRADIENT_EPS, MAX_ITER
-from torchrot.testing import generic_kernel, make_matrices
+from torchrot.testing import make_matrices
 
 op = torch.ops.torchrot
 M = make_matrices("gaussian", 4, 0, torch.float32)
@@ -194,33 +194,34 @@ def _to_meta(args):
     )
 
 
+@pytest.mark.parametrize("kernel", kernel_path_params("generic", "triton"))
 @pytest.mark.parametrize("case", sorted(OP_CASES))
-def test_every_kernel_raises_the_same_error(case):
-    """The C++ CPU kernel, the fake (meta) kernel and the device-generic
-    kernel raise the same exception type with the same message."""
+def test_every_kernel_raises_the_same_error(case, kernel):
+    """The C++ CPU kernel, the fake (meta) kernel and the device-generic and
+    Triton kernels raise the same exception type with the same message."""
     name, args = OP_CASES[case]
     call = getattr(op, name)
     cpu = _error(lambda: call(*args))
     assert cpu[0] in (TypeError, ValueError), cpu
-    with generic_kernel():
+    with KERNEL_PATHS[kernel]():
         assert _error(lambda: call(*args)) == cpu
     if case not in DATA_DEPENDENT:
         assert _error(lambda: call(*_to_meta(args))) == cpu
 
 
-def test_errors_change_nothing_on_any_kernel():
+@pytest.mark.parametrize("kernel", kernel_path_params())
+def test_errors_change_nothing_on_any_kernel(kernel):
     """A raising fit_rotation_out leaves out, M and init as they were."""
-    for use_generic in (False, True):
-        init = R.clone()
-        init[2] *= 2  # one bad warm start: the in-place update must not touch the others
-        M_ = M.clone()
-        before = (init.clone(), M_.clone())
-        with generic_kernel() if use_generic else contextlib.nullcontext():
-            with pytest.raises(ValueError, match="1 of 4 are not"):
-                torchrot.fit_rotation(M_, init, max_iter=1, out=init)
-            with pytest.raises(ValueError, match="1 of 4 are not"):
-                torchrot.fit_rotation(M_, init, max_iter=1, out=M_)
-        assert torch.equal(init, before[0]) and torch.equal(M_, before[1])
+    init = R.clone()
+    init[2] *= 2  # one bad warm start: the in-place update must not touch the others
+    M_ = M.clone()
+    before = (init.clone(), M_.clone())
+    with KERNEL_PATHS[kernel]():
+        with pytest.raises(ValueError, match="1 of 4 are not"):
+            torchrot.fit_rotation(M_, init, max_iter=1, out=init)
+        with pytest.raises(ValueError, match="1 of 4 are not"):
+            torchrot.fit_rotation(M_, init, max_iter=1, out=M_)
+    assert torch.equal(init, before[0]) and torch.equal(M_, before[1])
 
 
 # (wrapper call, exception type) under torch.compile: the wrapper checks its

@@ -96,12 +96,14 @@ def _run_fit(M, init, out, max_iter, variant, callers_out, iterations=None, stat
         init_known_clean = _check_warm_starts(init, compute)
     m_view = _batch_view(M, M.shape)
     init_view = _batch_view(init, M.shape) if init is not None else None
-    through_temporary = callers_out and (_overlaps_other_than_identity(out, M)
-                                         or _overlaps_other_than_identity(out, init))
+    # Reduced precision is computed into a float32 buffer, which torch rounds
+    # to out's dtype (as the C++ operator does).
+    through_temporary = compute != out.dtype or (callers_out and (_overlaps_other_than_identity(out, M)
+                                                                  or _overlaps_other_than_identity(out, init)))
     out_view = None if through_temporary else _writable_view(out)
     temporary = out_view is None
     if temporary:
-        out_view = torch.empty((n, 3, 3), dtype=out.dtype, device=out.device)
+        out_view = torch.empty((n, 3, 3), dtype=compute, device=out.device)
     converge = max_iter is None
     check_inits = init is not None and not callers_out
     if status is None and (converge or check_inits):
@@ -152,8 +154,9 @@ def _fit_rotation_backward(grad, R, M, gradient_eps=GRADIENT_EPS):
     out = empty_result(R)
     if math.prod(R.shape[:-2]) == 0:
         return out
-    out_view = _writable_view(out)
-    target = out_view if out_view is not None else torch.empty(R.shape, dtype=R.dtype, device=R.device).view(-1, 3, 3)
+    compute = compute_dtype(R.dtype)
+    out_view = _writable_view(out) if compute == R.dtype else None
+    target = out_view if out_view is not None else torch.empty(R.shape, dtype=compute, device=R.device).view(-1, 3, 3)
     tangent_batch(_batch_view(grad, R.shape), _batch_view(R, R.shape), _batch_view(M, R.shape), target, gradient_eps)
     if out_view is None:
         out.copy_(target.view(R.shape))
