@@ -8,8 +8,8 @@ torch minor release it was compiled against: the package requires that
 release (``torch==X.Y.*``), and ``import torchrot`` refuses, with a clear
 error, a torch of another release (torchrot/_extension.py reads the version
 this build writes to torchrot/_build_info.py). The C++ standard is the one
-torch's own extension helpers pick for the installed torch (C++20 for the
-supported releases); nothing here sets it.
+torch's own extension helpers pick for the installed torch (C++17 for torch
+2.11, C++20 from 2.12; torchrot compiles as either); nothing here sets it.
 
 The CPU kernel is compiled once per instruction set, each object with its own
 flags and CPU_CAPABILITY (so ATen's Vectorized<T> and every inline function of
@@ -49,12 +49,12 @@ try:
 except ImportError:
     sys.exit(
         "torchrot compiles its C++ extension against the torch installed in this environment, and none was "
-        "found. Install torch first (any release from 2.12 to 2.15), then build without isolation so that the "
+        "found. Install torch first (any release from 2.11 to 2.15), then build without isolation so that the "
         "build sees it: pip install --no-build-isolation ."
     )
 
 # The torch releases torchrot supports and is tested against (README, "Platforms").
-SUPPORTED_TORCH = ((2, 12), (2, 15))  # first and last minor release, inclusive
+SUPPORTED_TORCH = ((2, 11), (2, 15))  # first and last minor release, inclusive
 TORCH_RELEASE = tuple(int(part) for part in torch.__version__.split("+")[0].split(".")[:2])
 if not SUPPORTED_TORCH[0] <= TORCH_RELEASE <= SUPPORTED_TORCH[1]:
     sys.exit(

@@ -46,7 +46,7 @@ def test_import_under_another_torch_fails_before_loading():
     it under another torch can fail to link, or crash)."""
     code = (
         "import sys, types\n"
-        "record = types.ModuleType('torchrot._build_info'); record.TORCH_VERSION = '2.11.0+cpu'\n"
+        "record = types.ModuleType('torchrot._build_info'); record.TORCH_VERSION = '2.10.0+cpu'\n"
         "sys.modules['torchrot._build_info'] = record\n"
         "try:\n"
         "    import torchrot\n"
@@ -56,7 +56,7 @@ def test_import_under_another_torch_fails_before_loading():
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
-    assert f"built against torch 2.11.0+cpu, but torch {torch.__version__} is installed" in result.stdout
+    assert f"built against torch 2.10.0+cpu, but torch {torch.__version__} is installed" in result.stdout
     assert "pip install --no-build-isolation" in result.stdout
     assert result.stdout.strip().endswith("not loaded")
 

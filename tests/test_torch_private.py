@@ -93,6 +93,20 @@ def test_single_level_function_records_at_each_level():
     assert issubclass(single, torch.autograd.function._SingleLevelFunction)
 
 
+def test_autocast_available_traces_as_a_constant():
+    """torch.compile(fullgraph=True) traces autocast_available (torch 2.11's
+    dynamo cannot trace torch.amp.is_autocast_available) and gives its eager
+    answer: CPU has autocast, meta has none."""
+    assert private.autocast_available("cpu") and not private.autocast_available("meta")
+
+    @torch.compile(fullgraph=True, backend="eager")
+    def available(x):
+        return x + 1, private.autocast_available(x.device.type)
+
+    assert available(torch.zeros(2))[1] is True
+    assert available(torch.zeros(2, device="meta"))[1] is False
+
+
 def test_non_overlapping_and_dense():
     assert private.is_non_overlapping_and_dense(M) and private.is_non_overlapping_and_dense(M.mT)
     assert not private.is_non_overlapping_and_dense(M[::2])

@@ -239,14 +239,15 @@ def _runs(target, transform, mode):
     return mode == "eager" or (transform in transforms and mode in modes)
 
 
-# torch 2.12's jacrev builds its basis with a data-dependent offset when the
-# function has several outputs, which dynamo cannot trace with fullgraph=True
-# (UserError "Could not extract specialized integer from data-dependent
-# expression"; (q.sin(), q.cos()) fails alike, torch 2.13 traces it): the
-# registration targets, whose outputs are (R, t, s), raise it there.
+# torch 2.11's and 2.12's jacrev build their basis with a data-dependent
+# offset when the function has several outputs, which dynamo cannot trace with
+# fullgraph=True (UserError "Could not extract specialized integer from
+# data-dependent expression"; (q.sin(), q.cos()) fails alike, torch 2.13
+# traces it): the registration targets, whose outputs are (R, t, s), raise it
+# there.
 _JACREV_MULTI_OUTPUT_FULLGRAPH = pytest.mark.xfail(
     release_of(torch.__version__) < (2, 13), raises=torch._dynamo.exc.UserError, strict=True,
-    reason="torch 2.12: jacrev of a multi-output function cannot be traced with fullgraph=True")
+    reason="torch 2.11, 2.12: jacrev of a multi-output function cannot be traced with fullgraph=True")
 
 
 def _marks(target, transform, mode):

@@ -10,7 +10,8 @@ private modules. (The C++ side's are in csrc/torch_internals.h.)
 What they are for: the operators' Python Autograd kernel records derivatives
 at each torch.func level itself (torchrot/_autograd.py), which takes the
 dispatch and functorch internals below; the fake kernel asks a symbolic
-tensor whether it is dense.
+tensor whether it is dense; rigid_registration asks whether a device has
+autocast also where torch 2.11's dynamo traces it.
 """
 from __future__ import annotations
 
@@ -20,9 +21,12 @@ import torch
 from torch._functorch.utils import enable_single_level_autograd_function, unwrap_dead_wrappers
 from torch.autograd.function import _SingleLevelFunction
 
+from torchrot._extension import torch_release
+
 __all__ = [
     "after_autograd_keyset",
     "any_requires_grad",
+    "autocast_available",
     "below_autograd",
     "differentiating_levels_below",
     "enable_single_level_autograd_function",
@@ -50,6 +54,24 @@ functorch_transforms_active = torch._C._are_functorch_transforms_active
 _FUNCTORCH = torch._C._functorch
 _FRONT_MODE = torch._C.DispatchKey.FuncTorchDynamicLayerFrontMode
 _DIFFERENTIATING = (_FUNCTORCH.TransformType.Grad, _FUNCTORCH.TransformType.Jvp)
+
+
+def _autocast_available_constant(device_type: str) -> bool:
+    return torch.amp.is_autocast_available(device_type)
+
+
+# The mark torch.compiler.assume_constant_result sets (dynamo calls the
+# function while tracing and takes its result as a constant), set without that
+# decorator: it imports torch._dynamo, about 1 s on torchrot's import.
+_autocast_available_constant._dynamo_marked_constant = True
+#: torch.amp.is_autocast_available(device_type), also where torch.compile
+#: traces it: torch 2.11's dynamo cannot trace the C function it calls
+#: ("Attempted to call function marked as skipped", a graph break that
+#: fullgraph=True refuses), so there it is a function marked constant; from
+#: torch 2.12 on dynamo folds the call to a constant itself.
+autocast_available = (
+    _autocast_available_constant if torch_release(torch.__version__) < (2, 12) else torch.amp.is_autocast_available
+)
 
 
 def below_autograd() -> contextlib.AbstractContextManager:

@@ -26,7 +26,7 @@ import torch
 
 from torchrot._checks import broadcast_shapes
 from torchrot._constants import SUPPORTED_DTYPES
-from torchrot._torch_private import is_functorch_wrapped
+from torchrot._torch_private import autocast_available, is_functorch_wrapped
 from torchrot.fitting import fit_rotation
 
 __all__ = ["MIN_POINTS", "RigidTransform", "rigid_registration"]
@@ -141,7 +141,7 @@ def rigid_registration(
     # torch.autocast raises for them. Entering it costs ~3 us, so eager calls
     # where autocast is off skip it.)
     device_type = x.device.type
-    autocast_on = torch.amp.is_autocast_available(device_type) and \
+    autocast_on = autocast_available(device_type) and \
         (torch.compiler.is_compiling() or torch.is_autocast_enabled(device_type))
     no_autocast = torch.autocast(device_type, enabled=False) if autocast_on else contextlib.nullcontext()
     with no_autocast:
