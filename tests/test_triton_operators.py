@@ -28,7 +28,7 @@ def test_backward_bit_identical_to_scalar_kernel(dtype):
     G = make_matrices("gaussian", 64, 51, dtype)
     R = torchrot.fit_rotation(M)
     huge = G.clone()
-    huge[3] *= 2.0 ** (torch.finfo(dtype).maxexp // 2 + 2)  # the exact rescaling of a huge dL/dR
+    huge[3] *= 2.0 ** (torch.finfo(dtype).max.__trunc__().bit_length() // 2 + 2)  # the rescaling of a huge dL/dR
     for grad, eps in ((G, 0.0), (G, 1e-3), (huge, 1e-12)):
         with triton_kernel():
             triton = op.fit_rotation_backward(grad, R, M, eps)
@@ -40,7 +40,7 @@ def test_backward_bit_identical_to_scalar_kernel(dtype):
 def test_gradcheck_through_the_triton_backward():
     """Reverse and forward mode through the Triton derivative kernel, well
     separated singular values (float64)."""
-    M = make_matrices("rot60", 6, 52, torch.float64).requires_grad_()
+    M = make_matrices("rot60", 2, 52, torch.float64).requires_grad_()
     with triton_kernel():
         assert torch.autograd.gradcheck(torchrot.fit_rotation, (M,), check_forward_ad=True)
 

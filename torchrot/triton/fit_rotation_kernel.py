@@ -23,7 +23,8 @@ from torchrot.triton.fit_rotation_impl import advance, advance_one_step, begin_f
 from torchrot.triton.optimality import check_warm_start, used_as_is
 
 __all__ = ["BLOCK", "STEP_CAP", "COMPILE_OPTIONS", "fit_batch", "count_bad_warm_starts", "fit_batch_kernel",
-           "count_bad_warm_starts_kernel", "compute_dtype", "triton_dtype"]
+           "count_bad_warm_starts_kernel", "fit_batch_constexprs", "count_bad_warm_starts_constexprs",
+           "compute_dtype", "triton_dtype"]
 
 #: Matrices per program (lanes of a block): a power of two. Each lane holds
 #: M's scaled copy, R and a step's temporaries in registers.
@@ -116,6 +117,22 @@ def _grid(n: int):
     return (triton.cdiv(n, BLOCK),)
 
 
+def fit_batch_constexprs(compute: torch.dtype, has_init: bool, max_iter: int | None, variant: str, *,
+                         init_known_clean: bool = False, write_iterations: bool = False,
+                         write_status: bool = False) -> dict:
+    """fit_batch_kernel's constexpr arguments for a call: one compiled kernel each."""
+    return dict(BLOCK=BLOCK, COMPUTE=triton_dtype(compute), HAS_INIT=has_init, INIT_KNOWN_CLEAN=init_known_clean,
+                ONE_STEP=max_iter == 1, CONVERGE=max_iter is None, VARIANT=variant,
+                WRITE_ITERATIONS=write_iterations, WRITE_STATUS=write_status, STATUS_CAYLEY=_STATUS_CAYLEY,
+                STATUS_FALLBACK=_STATUS_FALLBACK, STATUS_BAD_INIT=_STATUS_BAD_INIT,
+                STATUS_NON_FINITE=_STATUS_NON_FINITE, **constexprs_for(fit_batch_kernel, compute))
+
+
+def count_bad_warm_starts_constexprs(compute: torch.dtype) -> dict:
+    """count_bad_warm_starts_kernel's constexpr arguments."""
+    return dict(BLOCK=BLOCK, COMPUTE=triton_dtype(compute), **constexprs_for(count_bad_warm_starts_kernel, compute))
+
+
 def fit_batch(M: torch.Tensor, init: torch.Tensor | None, out: torch.Tensor, max_iter: int | None, variant: str, *,
               init_known_clean: bool = False, iterations: torch.Tensor | None = None,
               status: torch.Tensor | None = None) -> None:
@@ -126,21 +143,18 @@ def fit_batch(M: torch.Tensor, init: torch.Tensor | None, out: torch.Tensor, max
     n = M.shape[0]
     if n == 0:
         return
-    compute = compute_dtype(M.dtype)
     converge = max_iter is None
     # Converged mode: at most CONVERGED_CAP steps per start or escape (Tolerances::converged_budget).
     budget = (MAX_ESCAPES + 1) * CONVERGED_CAP if converge else max_iter
     cap = CONVERGED_CAP if converge else min(max_iter, STEP_CAP)
-    has_init = init is not None
-    I = init if has_init else M
+    I = init if init is not None else M
+    constexprs = fit_batch_constexprs(compute_dtype(M.dtype), init is not None, max_iter, variant,
+                                      init_known_clean=init_known_clean, write_iterations=iterations is not None,
+                                      write_status=status is not None)
     fit_batch_kernel[_grid(n)](
         M, *M.stride(), I, *I.stride(), out, *out.stride(),
         iterations if iterations is not None else out, status if status is not None else out, n, budget, cap,
-        BLOCK=BLOCK, COMPUTE=triton_dtype(compute), HAS_INIT=has_init, INIT_KNOWN_CLEAN=init_known_clean,
-        ONE_STEP=max_iter == 1, CONVERGE=converge, VARIANT=variant, WRITE_ITERATIONS=iterations is not None,
-        WRITE_STATUS=status is not None, STATUS_CAYLEY=_STATUS_CAYLEY, STATUS_FALLBACK=_STATUS_FALLBACK,
-        STATUS_BAD_INIT=_STATUS_BAD_INIT, STATUS_NON_FINITE=_STATUS_NON_FINITE,
-        **constexprs_for(fit_batch_kernel, compute), **COMPILE_OPTIONS)
+        **constexprs, **COMPILE_OPTIONS)
 
 
 def count_bad_warm_starts(init: torch.Tensor, compute: torch.dtype) -> tuple[int, int]:
@@ -150,8 +164,7 @@ def count_bad_warm_starts(init: torch.Tensor, compute: torch.dtype) -> tuple[int
     if n == 0:
         return 0, 0
     counts = torch.zeros(2, dtype=torch.int64, device=init.device)
-    count_bad_warm_starts_kernel[_grid(n)](init, *init.stride(), counts, n, BLOCK=BLOCK,
-                                           COMPUTE=triton_dtype(compute),
-                                           **constexprs_for(count_bad_warm_starts_kernel, compute), **COMPILE_OPTIONS)
+    count_bad_warm_starts_kernel[_grid(n)](init, *init.stride(), counts, n, **count_bad_warm_starts_constexprs(compute),
+                                           **COMPILE_OPTIONS)
     bad, unclean = counts.tolist()
     return bad, unclean

@@ -14,7 +14,7 @@ from torchrot.triton.fit_rotation_impl import constexprs_for
 from torchrot.triton.fit_rotation_kernel import BLOCK, COMPILE_OPTIONS, compute_dtype, triton_dtype
 from torchrot.triton.rotation_gradient import rotation_tangent
 
-__all__ = ["tangent_batch", "tangent_batch_kernel"]
+__all__ = ["tangent_batch", "tangent_batch_kernel", "tangent_batch_constexprs"]
 
 
 @triton.jit
@@ -43,5 +43,10 @@ def tangent_batch(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, out: torch.
     compute = compute_dtype(R.dtype)
     damping_value = torch.full((1,), damping, dtype=compute, device=R.device)
     tangent_batch_kernel[(triton.cdiv(n, BLOCK),)](
-        X, *X.stride(), R, *R.stride(), M, *M.stride(), out, *out.stride(), damping_value, n, BLOCK=BLOCK,
-        COMPUTE=triton_dtype(compute), **constexprs_for(tangent_batch_kernel, compute), **COMPILE_OPTIONS)
+        X, *X.stride(), R, *R.stride(), M, *M.stride(), out, *out.stride(), damping_value, n,
+        **tangent_batch_constexprs(compute), **COMPILE_OPTIONS)
+
+
+def tangent_batch_constexprs(compute: torch.dtype) -> dict:
+    """tangent_batch_kernel's constexpr arguments."""
+    return dict(BLOCK=BLOCK, COMPUTE=triton_dtype(compute), **constexprs_for(tangent_batch_kernel, compute))
