@@ -101,6 +101,16 @@ def parser() -> argparse.ArgumentParser:
     bench.add_argument("--apps-only", action="store_true", help="run only the applications part")
     bench.add_argument("--mesh", help="an OBJ/OFF/PLY/STL surface for the ARAP data set and experiments "
                                       "(default: the built-in capsule)")
+    bench.add_argument("--device", help="the device job instead: torchrot's operators on this device's tensors "
+                                        "(cuda, xpu, mps; cpu checks the job itself) beside torch.linalg.svd, RoMa "
+                                        "and copy_ on the same device, and a first call's latency; writes "
+                                        "device.json/.md")
+    bench.add_argument("--device-n", type=positive_int, nargs="+", metavar="N",
+                       help="with --device: matrices per row (default "
+                            "1000 10000 100000 1000000 10000000)")
+    bench.add_argument("--svd-max-n", type=positive_int, metavar="N",
+                       help="with --device: time torch.linalg.svd, RoMa and the rotation layer up to N matrices "
+                            "(default 1000000)")
     bench.add_argument("--cache", help="folder of the recorded data sets (default: $TORCHROT_CACHE, else "
                                        "$XDG_CACHE_HOME/torchrot, else ~/.cache/torchrot); a second run loads "
                                        "them from there")
@@ -140,7 +150,20 @@ def _with_load(run, loads: dict, key: str):
     return stage
 
 
+def _device_job(args: argparse.Namespace, log) -> int:
+    from torchrot.bench import device
+
+    device.device_bench(args.device, tuple(args.device_n or device.DEVICE_N),
+                        tuple(DTYPES[d] for d in args.dtype) if args.dtype else (torch.float32, torch.float64),
+                        rounds=args.repeats or 5, svd_max_n=args.svd_max_n or device.SVD_MAX_N,
+                        output=os.path.abspath(args.output) if args.output else None,
+                        command="python -m torchrot " + " ".join(sys.argv[1:]), log=log)
+    return 0
+
+
 def bench(args: argparse.Namespace, log=print) -> int:
+    if args.device:
+        return _device_job(args, log)
     clock = time.perf_counter()
     plan, apps_plan = _plans(args)
     output = os.path.abspath(args.output) if args.output else None

@@ -13,8 +13,8 @@ from collections.abc import Callable, Iterator
 
 import torch.utils.benchmark as tbench
 
-__all__ = ["INTERLEAVED_MIN_SECONDS", "PhaseTimer", "interleaved_median_seconds", "interleaved_seconds",
-           "median_seconds"]
+__all__ = ["INTERLEAVED_MIN_SECONDS", "PhaseTimer", "device_median_seconds", "interleaved_median_seconds",
+           "interleaved_seconds", "median_seconds"]
 
 #: An interleaved sample lasts at least this long (seconds): shorter calls are
 #: repeated back to back, so that the sample does not time the clock (a copy
@@ -61,6 +61,33 @@ def interleaved_seconds(fn: Callable[[], object]) -> float:
     for _ in range(calls):
         fn()
     return (time.perf_counter() - start) / calls
+
+
+def device_median_seconds(calls: dict[str, Callable[[], object]], synchronize: Callable[[], None], rounds: int,
+                          min_run_time: float) -> dict[str, float]:
+    """Median seconds per call of each of ``calls`` on an accelerator (whose
+    work is asynchronous): each round times every call in turn over enough
+    calls back to back to last ``min_run_time``, from a synchronised device to
+    the device synchronised after the last call (the work itself, launches
+    included, not only the launches)."""
+    runs: dict[str, list[float]] = {name: [] for name in calls}
+    repeats = {}
+    for name, fn in calls.items():  # warm-up (first calls compile) and the repeat count
+        fn()
+        synchronize()
+        start = time.perf_counter()
+        fn()
+        synchronize()
+        repeats[name] = max(1, math.ceil(min_run_time / max(time.perf_counter() - start, 1e-9)))
+    for _ in range(rounds):
+        for name, fn in calls.items():
+            synchronize()
+            start = time.perf_counter()
+            for _ in range(repeats[name]):
+                fn()
+            synchronize()
+            runs[name].append((time.perf_counter() - start) / repeats[name])
+    return {name: statistics.median(r) for name, r in runs.items()}
 
 
 class PhaseTimer:
