@@ -1,11 +1,17 @@
-"""torchrot on accelerators: CUDA, XPU and MPS tensors run the device-generic
-kernels (torchrot.generic; compiled on COMPILED_DEVICE_TYPES). Each test runs
-on every accelerator present and is skipped where there is none (here: this
-suite's machines have no GPU). The same algorithm runs on CPU tensors in
-tests/test_generic_path.py and, under every transform, tests/test_transforms_matrix.py.
+"""torchrot on accelerators: CUDA and XPU tensors run torchrot's Triton
+kernels (torchrot.triton) where Triton has a backend for them, MPS tensors
+(and the others without Triton) the device-generic kernels
+(torchrot.generic). Each test runs on every accelerator present and is
+skipped where there is none (CI's machines have no GPU;
+benchmarks/gpu_check.sh runs them on a lent one). The same kernels run on
+CPU tensors in tests/test_triton_kernels.py (under Triton's interpreter) and
+tests/test_generic_path.py.
 
 Answers are compared with the C++ kernel on the CPU: the same status codes,
-the accuracy criteria of testing.CRITERIA, NaN exactly where the input had it.
+the accuracy criteria of testing.CRITERIA, NaN exactly where the input had
+it; on the Triton kernels, which round as the scalar kernel does, the same
+iteration counts and (but for the fallback's matrices) results within an
+ulp or two, most of them bit for bit.
 """
 from __future__ import annotations
 
@@ -15,8 +21,9 @@ import pytest
 import torch
 
 import torchrot
+from torchrot import _device_kernels
 from torchrot.reference import fit_rotation_backward_reference
-from torchrot.testing import DISTRIBUTIONS, dtype_id, edge_case_matrices, make_matrices
+from torchrot.testing import DISTRIBUTIONS, cpu_kernel, dtype_id, edge_case_matrices, make_matrices, make_warm_start
 
 
 def _accelerators() -> list[str]:
@@ -101,3 +108,27 @@ def test_compiled_caller(device):
     M = make_matrices("uniform", 256, 37, torch.float32).to(device)
     f = torch.compile(lambda M: torchrot.fit_rotation(M) @ M.mT, fullgraph=True)
     torch.testing.assert_close(f(M).cpu(), (torchrot.fit_rotation(M.cpu()) @ M.cpu().mT), rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("mode", ["cold", "warm", "one step", "max_iter=3"])
+@pytest.mark.parametrize("name", ["uniform", "gaussian", "warm", "rot60", "rank2"])
+def test_triton_kernels_round_as_the_scalar_kernel(device, name, mode):
+    """Where the Triton kernels run: the scalar kernel's iteration counts and
+    statuses, and its results to within 4 ulps (bit for bit but where a
+    subnormal intermediate is flushed on the CPU and kept on the GPU, and on
+    the fallback's matrices, which the criteria check above)."""
+    if _device_kernels.kernels_for(torch.device(device).type) is _device_kernels.GENERIC_KERNELS:
+        pytest.skip(f"{device} tensors run the device-generic kernels here")
+    for dtype in _dtypes(device):
+        M, init = make_warm_start(name, N, 38, dtype)
+        args = {"cold": (M, None, None), "warm": (M, init, None), "one step": (M, init, 1),
+                "max_iter=3": (M, None, 3)}[mode]
+        R, iterations, status = torchrot.fit_rotation_info(*(a.to(device) if a is not None else None
+                                                             for a in args[:2]), max_iter=args[2])
+        with cpu_kernel("scalar"):
+            R_cpu, iterations_cpu, status_cpu = torchrot.fit_rotation_info(*args[:2], max_iter=args[2])
+        assert torch.equal(status.cpu(), status_cpu) and torch.equal(iterations.cpu(), iterations_cpu)
+        cayley = status_cpu == 0
+        torch.testing.assert_close(R.cpu()[cayley], R_cpu[cayley], rtol=0, atol=4 * torch.finfo(dtype).eps)
+        same = (R.cpu() == R_cpu).flatten(-2).all(-1)[cayley].float().mean().item()
+        assert same >= 0.99, f"{dtype_id(dtype)}: {same:.4f} of the results bit for bit"
