@@ -164,3 +164,17 @@ def test_pages_have_code_blocks() -> None:
     pages = {block.path for block in _all_blocks()}
     assert ROOT / "README.md" in pages
     assert any(path.parent.name == "docs" for path in pages), "no Python block found under docs/"
+
+
+def _two_commands(page: pathlib.Path) -> list[str]:
+    """The lines of ``page`` that install torchrot and run the main job or the tests."""
+    return [line for line in page.read_text().splitlines()
+            if line.startswith("pip install torch==") and ("torchrot bench" in line or "pytest" in line)]
+
+
+def test_installation_page_gives_the_readme_commands() -> None:
+    """docs/installation.md repeats the README's two commands (the site stands
+    alone); .ci/run runs the README's test command as it stands there."""
+    readme = _two_commands(ROOT / "README.md")
+    assert len(readme) == 2 and any("pytest" in line for line in readme)
+    assert _two_commands(ROOT / "docs" / "installation.md") == readme
