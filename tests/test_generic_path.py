@@ -14,6 +14,8 @@ import torch
 import torchrot
 from torchrot import generic
 from torchrot.generic import driver, schedule
+from torchrot.generic.cold_start import best_start_rotation
+from torchrot.generic.maximal_objective import maximal_objective
 from torchrot.reference import fit_rotation_backward_reference
 from torchrot.testing import (
     DISTRIBUTIONS,
@@ -50,8 +52,8 @@ def test_maximal_objective_is_horns_largest_eigenvalue(name, dtype):
     # root (measured: at most 72 eps relative, float32 uniform).
     M = make_matrices(name, N, 29, dtype)
     A = list((M / M.abs().amax((-2, -1), keepdim=True)).reshape(-1, 9).unbind(-1))
-    _, start_objective = generic._best_start_rotation(A)
-    lam = generic._maximal_objective(A, start_objective)
+    _, start_objective = best_start_rotation(A)
+    lam = maximal_objective(A, start_objective)
     A64 = torch.stack(A, -1).double().reshape(-1, 3, 3)
     sigma = torch.linalg.svdvals(A64)
     expected = sigma[:, 0] + sigma[:, 1] + torch.sign(torch.linalg.det(A64)) * sigma[:, 2]
@@ -207,7 +209,7 @@ def test_converged_compiled(start, monkeypatch, assert_meets_criteria):
     if start == "cold":
         init = None
     R, it, st = torch.compile(driver._fit_core, fullgraph=True)(M, init, None, "conservative")
-    R_e, it_e, st_e = generic._fit_core(M, init, None, "conservative")
+    R_e, it_e, st_e = driver._fit_core(M, init, None, "conservative")
     # Degenerate maxima (M = -I: every half-turn is optimal) are decided by
     # rounding, which the compiled code does otherwise (inductor fuses
     # products into sums): measured, M = -I falls back compiled and not

@@ -20,7 +20,7 @@ __all__ = [
     "GRADIENT_EPS", "INIT_CLEAN", "INIT_CLEAN_EPS", "INIT_CLEAN_STEPS", "INIT_TOLERANCE", "MAX_CHECK_SLACK_EPS",
     "LARGE_STEP", "MAX_ESCAPES", "MAX_GRADIENT_EPS", "MAX_ITER", "MESSAGES", "OBJECTIVE_LAGUERRE_STEPS",
     "STEPS_WITHOUT_CLEAN_UP", "SUPPORTED_DTYPES",
-    "UNDAMPED", "VARIANTS",
+    "UNDAMPED", "VARIANTS", "dtype_name",
 ]
 
 _CONSTANTS = _C.constants()
@@ -86,3 +86,9 @@ MAX_ESCAPES: int = _CONSTANTS["MAX_ESCAPES"]
 GERSHGORIN_STEPS: int = _CONSTANTS["GERSHGORIN_STEPS"]
 ESTIMATE_SWITCH: float = _CONSTANTS["ESTIMATE_SWITCH"]
 MAX_CHECK_SLACK_EPS: float = _CONSTANTS["MAX_CHECK_SLACK_EPS"]
+
+
+def dtype_name(dtype: torch.dtype) -> str:
+    """"float32" for torch.float32: the key of the per-dtype tables above
+    (INIT_CLEAN, UNDAMPED: the kernel's Tolerances<T>)."""
+    return str(dtype).removeprefix("torch.")

@@ -18,8 +18,8 @@ import torch
 
 from torchrot._checks import bad_init_error, check_all, check_backward, check_matrix_arg
 from torchrot._constants import GRADIENT_EPS
+from torchrot.generic import quaternion as soa_quaternion
 from torchrot.generic.driver import fit_rotation_backward_generic, fit_rotation_generic
-from torchrot.generic.quaternion import _horn, _quaternion_rotation
 
 __all__ = [
     "cayley_rotation",
@@ -115,7 +115,7 @@ def rigid_registration_svd(x: torch.Tensor, y: torch.Tensor, weights: torch.Tens
 
 def _fraction_rotation(w, d):
     """Eq. 10 for z = -w / d, multiplied through by d^2 (one division). Not
-    torchrot.generic.cayley's _cayley_increment, which computes Q - I for the
+    torchrot.generic.cayley's cayley_increment, which computes Q - I for the
     fits (other roundings): cayley_rotation makes the test data
     (torchrot.testing.data), whose bits stay as they were."""
     ww = (w * w).sum(-1)[..., None, None]
@@ -164,7 +164,7 @@ def quaternion_rotation(q: torch.Tensor) -> torch.Tensor:
                 [ 0., -1.,  0.],
                 [ 0.,  0.,  1.]])
     """
-    return torch.stack(_quaternion_rotation(*q.unbind(-1)), -1).reshape(q.shape[:-1] + (3, 3))
+    return torch.stack(soa_quaternion.quaternion_rotation(*q.unbind(-1)), -1).reshape(q.shape[:-1] + (3, 3))
 
 
 def horn_matrix(M: torch.Tensor) -> torch.Tensor:
@@ -186,7 +186,7 @@ def horn_matrix(M: torch.Tensor) -> torch.Tensor:
         >>> torch.allclose(q @ horn_matrix(M) @ q, (quaternion_rotation(q) * M).sum())
         True
     """
-    return torch.stack(_horn(list(M.flatten(-2).unbind(-1))), -1).reshape(M.shape[:-2] + (4, 4))
+    return torch.stack(soa_quaternion.horn_matrix(list(M.flatten(-2).unbind(-1))), -1).reshape(M.shape[:-2] + (4, 4))
 
 
 def fit_rotation_reference(

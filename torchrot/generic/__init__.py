@@ -18,7 +18,9 @@ after it, and one per job that has none:
 ======================  ==============================================  ==================================
 module                  what                                            mirrors
 ======================  ==============================================  ==================================
+``lanes``               select, max |entry| per lane                    csrc/kernel/lanes.h
 ``mat3``                3x3 algebra on lists of 9 tensors               csrc/kernel/mat3.h
+``unit_scale``          M scaled to max |entry| 1, exactly              csrc/kernel/unit_scale.h
 ``cayley``              trace, m, the estimate c, Algorithm 2, Eq. 10   csrc/kernel/cayley.h
 ``cold_start``          the best of the 24 rotations of the cube        csrc/kernel/cold_start.h
 ``maximal_objective``   K's largest eigenvalue (Laguerre)               csrc/kernel/maximal_objective.h
@@ -33,8 +35,10 @@ module                  what                                            mirrors
 ``driver``              _fit_core and the entry points                   (none)
 ======================  ==============================================  ==================================
 
-(lanes.h, force_inline.h and mul_add.h have no counterpart: tensors are the
-lanes, and torch's ops are neither inlined nor fused by hand.)
+(force_inline.h and mul_add.h have no counterpart: torch's ops are neither
+inlined nor fused by hand. Each module's functions carry the header's names;
+tests/test_mirrors.py holds the correspondence, with the C++ functions that
+have no twin here and why.)
 
 Schedule (converged mode, torchrot.generic.schedule): the whole batch takes
 up to ``full_steps(dtype, cold)`` masked Cayley steps (most matrices converge
@@ -53,71 +57,30 @@ Their predicates (whether any lane still runs) are the only values the host
 reads: one flag per loop iteration (about a dozen per call), instead of
 running the whole step budget on every lane.
 
-The names below are re-exported for convenience; the code reads its tunables
-from the submodule that defines them, so patch them there:
-``torchrot.generic.schedule`` (STRAGGLER_MIN, STRAGGLER_DIVISOR, FULL_STEPS,
-...).
+The names below are the package's entry points and tunables; the code
+reads its tunables from the submodule that defines them, so patch them
+there: ``torchrot.generic.schedule`` (STRAGGLER_MIN, STRAGGLER_DIVISOR,
+FULL_STEPS, ...).
 
 Speed: benchmarks/generic_path.py.
 """
-# The private names are re-exported for the tests and for callers of the former module.
-# ruff: noqa: F401
 from __future__ import annotations
 
-from torchrot.generic.cayley import (
-    _cayley_increment,
-    _cayley_step,
-    _objective_estimate,
-    _rotate_by,
-    _skew_vector,
-    _trace,
-)
-from torchrot.generic.cold_start import _START_PERMS, _best_start_rotation
-from torchrot.generic.control_flow import (
-    _INT,
-    _LANE_KEYS,
-    UNROLL_MAX_STEPS,
-    _any,
-    _compiling,
-    _masked_update,
-    _repeat,
-)
 from torchrot.generic.driver import (
     STATUS_BAD_INIT,
     STATUS_CAYLEY,
     STATUS_FALLBACK,
     STATUS_NON_FINITE,
-    _components,
-    _compute_dtype,
-    _fit_core,
-    _warm_start_components,
     fit_rotation_backward_generic,
     fit_rotation_generic,
 )
-from torchrot.generic.fit_rotation_impl import (
-    _advance_and_finish,
-    _apply_pending_escapes,
-    _dtype_name,
-    _normalized,
-    _step,
-)
-from torchrot.generic.horn_fallback import _horn_rotation
-from torchrot.generic.mat3 import _dot3, _gram, _mul, _reorthonormalize, _tmul, _where
-from torchrot.generic.maximal_objective import _maximal_objective
-from torchrot.generic.optimality import _check_warm_start, _clean_warm_start, _det, _deviation2, _is_maximum
-from torchrot.generic.quaternion import _horn, _quaternion_rotation
 from torchrot.generic.rotation_gradient import rotation_tangent
-from torchrot.generic.saddle_escape import _saddle_escape_rotation
 from torchrot.generic.schedule import (
     COLD_FULL_STEPS,
     FULL_STEPS,
     FULL_STEPS_MAX_ITER,
     STRAGGLER_DIVISOR,
     STRAGGLER_MIN,
-    _compact_indices,
-    _gather,
-    _masked_lanes,
-    _scatter_back,
     fit_soa,
     full_steps,
     straggler_capacity,
@@ -133,7 +96,6 @@ __all__ = [
     "STATUS_NON_FINITE",
     "STRAGGLER_DIVISOR",
     "STRAGGLER_MIN",
-    "UNROLL_MAX_STEPS",
     "fit_rotation_backward_generic",
     "fit_rotation_generic",
     "fit_soa",

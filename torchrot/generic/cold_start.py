@@ -8,14 +8,14 @@ import torch
 
 from torchrot.generic.control_flow import _INT
 
-__all__ = ["_START_PERMS", "_best_start_rotation"]
+__all__ = ["_START_PERMS", "best_start_rotation"]
 
 #: cold_start.h's kStartPerm: row i's entry of permutation p is in column
 #: _START_PERMS[p][i]; the first three are even.
 _START_PERMS = ((0, 1, 2), (1, 2, 0), (2, 0, 1), (0, 2, 1), (2, 1, 0), (1, 0, 2))
 
 
-def _best_start_rotation(A):
+def best_start_rotation(A):
     """The best of the 24 rotations of the cube (signed permutation matrices
     of det +1) for tr(P^T A), the first of equals (cold_start.h, step by
     step: each permutation with the signs of its entries, the smallest one

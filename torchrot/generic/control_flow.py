@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrot.generic.mat3 import _where
+from torchrot.generic.lanes import select
 
 __all__ = ["_INT", "_LANE_KEYS", "UNROLL_MAX_STEPS", "_compiling", "_any", "_masked_update", "_repeat"]
 
@@ -47,7 +47,7 @@ def _masked_update(mask, fn, R, operands):
     which is computed only when some lane is set."""
     if not _compiling():  # only the lanes of mask, gathered
         if mask.device.type == "meta":
-            return _where(mask, fn(*operands), R)
+            return select(mask, fn(*operands), R)
         idx = mask.nonzero().squeeze(1)
         if idx.numel() == 0:
             return R
@@ -55,7 +55,7 @@ def _masked_update(mask, fn, R, operands):
     k = len(R)
 
     def replace(mask, *xs):
-        return tuple(_where(mask, fn(*xs[k:]), list(xs[:k])))
+        return tuple(select(mask, fn(*xs[k:]), list(xs[:k])))
 
     def keep(mask, *xs):
         return tuple(x.clone() for x in xs[:k])

@@ -17,15 +17,15 @@ import math
 
 import torch
 
-from torchrot._constants import INIT_CLEAN, FitStatus
-from torchrot.generic.cold_start import _best_start_rotation
+from torchrot._constants import INIT_CLEAN, FitStatus, dtype_name
+from torchrot.generic.cold_start import best_start_rotation
 from torchrot.generic.control_flow import _compiling
-from torchrot.generic.fit_rotation_impl import _dtype_name, _normalized
-from torchrot.generic.mat3 import _where
-from torchrot.generic.maximal_objective import _maximal_objective
-from torchrot.generic.optimality import _check_warm_start, _clean_warm_start
+from torchrot.generic.lanes import max_abs_entry, select
+from torchrot.generic.maximal_objective import maximal_objective
+from torchrot.generic.optimality import check_warm_start, clean_warm_start
 from torchrot.generic.rotation_gradient import rotation_tangent
 from torchrot.generic.schedule import fit_soa
+from torchrot.generic.unit_scale import unit_scale
 
 __all__ = [
     "STATUS_CAYLEY",
@@ -68,7 +68,7 @@ def _warm_start_components(init, compute):
     squared deviation from orthonormality."""
     batch = init.shape[:-2]
     I = [x.reshape(batch) for x in _components(init.to(compute), math.prod(batch))]
-    G, finite, bad, dev2 = _check_warm_start(I)
+    G, finite, bad, dev2 = check_warm_start(I)
     return I, G, finite, bad, dev2
 
 
@@ -85,7 +85,10 @@ def _fit_core(M, init, max_iter, variant, warm=None):
     batch = shape[:-2]
     n = math.prod(batch)
     eps = torch.finfo(compute).eps
-    A, max_abs, zero, _, _ = _normalized(_components(M.to(compute), n))
+    M_lanes = _components(M.to(compute), n)
+    max_abs = max_abs_entry(M_lanes)
+    zero = max_abs == 0
+    A = unit_scale(M_lanes, max_abs)[0]
     finite = torch.isfinite(max_abs)
     bad_init = torch.zeros_like(finite)
     objective = None  # the first step's estimate c: cold starts only
@@ -97,11 +100,11 @@ def _fit_core(M, init, max_iter, variant, warm=None):
         finite = finite & init_finite
         bad_init = init_bad
         # clean_warm_start: lanes above the dtype's clean threshold (eager: only while some lane needs a step).
-        R = _clean_warm_start(R, G, init_finite, init_bad, dev2, INIT_CLEAN[_dtype_name(compute)])
+        R = clean_warm_start(R, G, init_finite, init_bad, dev2, INIT_CLEAN[dtype_name(compute)])
     else:
-        R, start_objective = _best_start_rotation(A)
-        objective = _maximal_objective(A, start_objective)
-    A = _where(finite, A, [torch.zeros_like(a) for a in A])  # NaN stays in its lane
+        R, start_objective = best_start_rotation(A)
+        objective = maximal_objective(A, start_objective)
+    A = select(finite, A, [torch.zeros_like(a) for a in A])  # NaN stays in its lane
     running = finite & ~zero & ~bad_init
     R, iterations, fallback = fit_soa(A, R, running, variant, max_iter, eps, objective)
     nan_lane = ~finite | bad_init

@@ -12,8 +12,6 @@ whole-batch steps (torchrot.generic.schedule).
 """
 from __future__ import annotations
 
-import math
-
 import torch
 
 from torchrot._constants import (
@@ -24,46 +22,24 @@ from torchrot._constants import (
     MAX_ESCAPES,
     STEPS_WITHOUT_CLEAN_UP,
     UNDAMPED,
+    dtype_name,
 )
 from torchrot.generic.cayley import (
-    _cayley_increment,
-    _cayley_step,
-    _objective_estimate,
-    _rotate_by,
-    _skew_vector,
-    _trace,
+    cayley_increment,
+    cayley_step,
+    objective_estimate,
+    rotate_by,
+    skew_vector,
+    trace,
 )
 from torchrot.generic.control_flow import _INT, _any, _compiling, _masked_update, _repeat
-from torchrot.generic.horn_fallback import _horn_rotation
-from torchrot.generic.mat3 import _mul, _reorthonormalize, _tmul, _where
-from torchrot.generic.optimality import _is_maximum
-from torchrot.generic.saddle_escape import _saddle_escape_rotation
+from torchrot.generic.horn_fallback import horn_rotation
+from torchrot.generic.lanes import select
+from torchrot.generic.mat3 import reorthonormalize, times, transpose_times
+from torchrot.generic.optimality import is_maximum
+from torchrot.generic.saddle_escape import saddle_escape_rotation
 
-__all__ = ["_dtype_name", "_normalized", "_step", "_apply_pending_escapes", "_advance_and_finish", "_cleaned_up"]
-
-
-def _dtype_name(dtype: torch.dtype) -> str:
-    """"float32" for torch.float32: the key of torchrot._constants' per-dtype
-    tables (the kernel's Tolerances<T>)."""
-    return str(dtype).removeprefix("torch.")
-
-
-def _normalized(M):
-    """M / max|M| entrywise, as the kernel scales it (csrc/kernel/unit_scale.h):
-    a maximum outside the normal range, whose reciprocal is not a normal
-    number, is first lifted by 2^digits (subnormal) or dropped by 2^-digits
-    (above 1 / tiny): (A, max_abs, zero, lift, inv) with A = (M lift) inv."""
-    max_abs = M[0].abs()
-    for x in M[1:]:
-        max_abs = torch.maximum(max_abs, x.abs())  # NaN propagates
-    finfo = torch.finfo(M[0].dtype)
-    digits = round(-math.log2(finfo.eps)) + 1
-    ones = torch.ones_like(max_abs)
-    lift = torch.where(max_abs < finfo.tiny, float(2**digits),
-                       torch.where(max_abs > 1 / finfo.tiny, float(2**-digits), ones))
-    zero = max_abs == 0
-    inv = torch.where(zero, 0.0, 1 / torch.where(zero, 1.0, max_abs * lift))
-    return [(x * lift) * inv for x in M], max_abs, zero, lift, inv
+__all__ = ["can_take", "take_step", "advance", "finish", "_step", "_apply_pending_escapes", "_cleaned_up"]
 
 
 def _step(st, variant, converge, cap, eps, objective=None):
@@ -78,31 +54,21 @@ def _step(st, variant, converge, cap, eps, objective=None):
     iterations, attempt, escapes = st["iterations"], st["attempt"], st["escapes"]
     finfo = torch.finfo(A[0].dtype)
     step_floor = finfo.tiny / finfo.eps**2  # can_take's floor of d^2 + w.w
-    undamped_tol = UNDAMPED[_dtype_name(A[0].dtype)]
-    S = _tmul(R, A)
-    t = _trace(S)
-    m = _skew_vector(S)
+    undamped_tol = UNDAMPED[dtype_name(A[0].dtype)]
+    S = transpose_times(R, A)
+    t = trace(S)
+    m = skew_vector(S)
     mm = m[0] * m[0] + m[1] * m[1] + m[2] * m[2]
     if objective is not None:
         c = objective
     else:
-        c = _objective_estimate(S, t, mm, variant)
+        c = objective_estimate(S, t, mm, variant)
         if converge and variant == "gershgorin":
-            c = torch.where(switched, _objective_estimate(S, t, mm, "conservative"), c)
-    w, d, ww, dd, hh = _cayley_step(S, t, m, c)
-    norm2 = dd + ww
-    valid = (dd > 0) & torch.isfinite(norm2) & (norm2 > step_floor)  # can_take
-    stepping = running & valid
+            c = torch.where(switched, objective_estimate(S, t, mm, "conservative"), c)
+    w, d, ww, dd, hh = cayley_step(S, t, m, c)
+    valid = can_take(dd, ww, step_floor)
     stalled = running & ~valid
-    safe_d = torch.where(stepping, d, 1.0)
-    safe_dd = torch.where(stepping, dd, 1.0)
-    safe_w = [torch.where(stepping, x, 0.0) for x in w]
-    # Lanes not stepping get K = 0 exactly (w = 0, d = 1): R + R K = R, no select needed.
-    R = _rotate_by(R, _cayley_increment(safe_w, safe_d, torch.where(stepping, ww, 0.0), safe_dd))
-    large = st["large"] | (stepping & ~(ww < LARGE_STEP * dd))  # take_step's LaneState::large_step
-    step_i = stepping.to(_INT)
-    iterations = iterations + step_i
-    attempt = attempt + step_i
+    R, iterations, attempt, large, stepping = take_step(st, (w, d, ww, dd), valid)
     undamped = ~(c - t > undamped_tol * t.abs())
     finished = stepping & undamped & (ww < eps * dd)
     pending = st["pending"]
@@ -112,7 +78,7 @@ def _step(st, variant, converge, cap, eps, objective=None):
         finished = finished & ~singular
         switch_now = (ww < ESTIMATE_SWITCH * dd) | (attempt >= GERSHGORIN_STEPS)
         switched = switched | (stepping & switch_now)
-        saddle = finished & ~_is_maximum(S, MAX_CHECK_SLACK_EPS * eps)
+        saddle = finished & ~is_maximum(S, MAX_CHECK_SLACK_EPS * eps)
         escape = saddle & (escapes < MAX_ESCAPES)
         fallback = fallback | (saddle & ~escape)
         pending = pending | escape
@@ -125,14 +91,36 @@ def _step(st, variant, converge, cap, eps, objective=None):
                 iterations=iterations, attempt=attempt, pending=pending, large=large)
 
 
+def can_take(dd, ww, step_floor):
+    """Whether a lane can take the step (d, w): H not singular, the step
+    finite, d^2 + w.w above ``step_floor`` (T_min / eps^2; fit_rotation_impl.h)."""
+    norm2 = dd + ww
+    return (dd > 0) & torch.isfinite(norm2) & (norm2 > step_floor)
+
+
+def take_step(st, step, valid):
+    """Applies the step (w, d, w.w, d^2) to the running lanes that can take it
+    (``valid``), counts it and notes a large one: (R, iterations, attempt,
+    large, stepping)."""
+    w, d, ww, dd = step
+    stepping = st["running"] & valid
+    safe_d = torch.where(stepping, d, 1.0)
+    safe_dd = torch.where(stepping, dd, 1.0)
+    safe_w = [torch.where(stepping, x, 0.0) for x in w]
+    # Lanes not stepping get K = 0 exactly (w = 0, d = 1): R + R K = R, no select needed.
+    R = rotate_by(st["R"], cayley_increment(safe_w, safe_d, torch.where(stepping, ww, 0.0), safe_dd))
+    large = st["large"] | (stepping & ~(ww < LARGE_STEP * dd))
+    step_i = stepping.to(_INT)
+    return R, st["iterations"] + step_i, st["attempt"] + step_i, large, stepping
+
+
 def _apply_pending_escapes(st):
     """The saddle escape (saddle_escape.h) of the pending lanes, which then run again."""
     pending = st["pending"]
     if not _compiling() and not _any(pending):
         return st
-    R = _masked_update(pending,
-                       lambda *RA: _mul(list(RA[:9]), _saddle_escape_rotation(_tmul(list(RA[:9]), list(RA[9:])))),
-                       st["R"], (*st["R"], *st["A"]))
+    escaped = lambda *RA: times(list(RA[:9]), saddle_escape_rotation(transpose_times(list(RA[:9]), list(RA[9:]))))
+    R = _masked_update(pending, escaped, st["R"], (*st["R"], *st["A"]))
     return dict(st, R=R, running=st["running"] | pending, pending=pending & False, large=st["large"] | pending,
                 escapes=st["escapes"] + pending.to(_INT), attempt=torch.where(pending, 0, st["attempt"]),
                 switched=st["switched"] & ~pending)
@@ -142,16 +130,21 @@ def _cleaned_up(st):
     """finish()'s Newton-Schulz step, on the lanes that took a large step or
     a saddle escape, or more than STEPS_WITHOUT_CLEAN_UP steps."""
     clean_up = st["large"] | (st["iterations"] > STEPS_WITHOUT_CLEAN_UP)
-    return _where(clean_up, _reorthonormalize(st["R"]), st["R"])
+    return select(clean_up, reorthonormalize(st["R"]), st["R"])
 
 
-def _advance_and_finish(st, steps, variant, converge, cap, eps):
-    """Pending escapes, up to ``steps`` more Cayley steps on the lanes of
-    ``st``, then finish(): the Newton-Schulz clean-up and, in converged mode,
-    the Horn fallback. Returns (R, final state)."""
+def advance(st, steps, variant, converge, cap, eps):
+    """Pending escapes, then up to ``steps`` Cayley steps on the running lanes
+    of ``st`` (each with its escapes): the lane state after them."""
     st = _apply_pending_escapes(st)
-    st = _repeat(lambda s: _apply_pending_escapes(_step(s, variant, converge, cap, eps)), st, steps)
+    return _repeat(lambda s: _apply_pending_escapes(_step(s, variant, converge, cap, eps)), st, steps)
+
+
+def finish(st, converge):
+    """The result R of every lane that is not running: the Newton-Schulz
+    clean-up and, in converged mode, the Horn fallback of the fallback lanes
+    (the C++ finish's solve_fallback_lanes). NaN lanes are the driver's."""
     R = _cleaned_up(st)
     if converge:
-        R = _masked_update(st["fallback"], lambda *A: _horn_rotation(list(A)), R, st["A"])
-    return R, st
+        R = _masked_update(st["fallback"], lambda *A: horn_rotation(list(A)), R, st["A"])
+    return R

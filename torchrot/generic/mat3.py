@@ -10,30 +10,31 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["_dot3", "_tmul", "_mul", "_where", "_gram", "_reorthonormalize"]
+__all__ = ["dot3", "diff_of_products", "transpose_times", "times", "gram", "reorthonormalize"]
 
 
-def _dot3(a0, b0, a1, b1, a2, b2):
+def dot3(a0, b0, a1, b1, a2, b2):
     """a0 b0 + a1 b1 + a2 b2 in three ops (addcmul: eager makes one pass per op)."""
     return torch.addcmul(torch.addcmul(a0 * b0, a1, b1), a2, b2)
 
 
-def _tmul(R, A):
+def diff_of_products(a, b, c, d):
+    """a b - c d (cofactors, cross products; each product rounded here)."""
+    return a * b - c * d
+
+
+def transpose_times(R, A):
     """R^T A (transpose_times)."""
-    return [_dot3(R[r], A[c], R[3 + r], A[3 + c], R[6 + r], A[6 + c]) for r in range(3) for c in range(3)]
+    return [dot3(R[r], A[c], R[3 + r], A[3 + c], R[6 + r], A[6 + c]) for r in range(3) for c in range(3)]
 
 
-def _mul(A, B):
+def times(A, B):
     """A B (times)."""
-    return [_dot3(A[3 * r], B[c], A[3 * r + 1], B[3 + c], A[3 * r + 2], B[6 + c]) for r in range(3) for c in range(3)]
+    return [dot3(A[3 * r], B[c], A[3 * r + 1], B[3 + c], A[3 * r + 2], B[6 + c]) for r in range(3) for c in range(3)]
 
 
-def _where(mask, X, Y):
-    """X on the lanes of ``mask``, Y elsewhere, entry by entry (lanes.h's select on a Mat3)."""
-    return [torch.where(mask, x, y) for x, y in zip(X, Y)]
 
-
-def _gram(R):
+def gram(R):
     """R^T R (gram), each off-diagonal entry computed once."""
     G = [None] * 9
     for r in range(3):
@@ -43,9 +44,9 @@ def _gram(R):
     return G
 
 
-def _reorthonormalize(R, G=None):
+def reorthonormalize(R, G=None):
     """One Newton-Schulz step R (3 I - R^T R) / 2 (reorthonormalize); ``G``:
     R's Gram matrix if the caller has it."""
-    G = _gram(R) if G is None else G
+    G = gram(R) if G is None else G
     H = [(1.5 - 0.5 * g) if i % 4 == 0 else (-0.5 * g) for i, g in enumerate(G)]
-    return _mul(R, H)
+    return times(R, H)

@@ -9,27 +9,26 @@ from __future__ import annotations
 
 import torch
 
-from torchrot._constants import OBJECTIVE_LAGUERRE_STEPS, UNDAMPED
-from torchrot.generic.cayley import _cayley_step, _skew_vector, _trace
+from torchrot._constants import OBJECTIVE_LAGUERRE_STEPS, UNDAMPED, dtype_name
+from torchrot.generic.cayley import cayley_step, skew_vector, trace
 from torchrot.generic.control_flow import _any, _compiling
-from torchrot.generic.fit_rotation_impl import _dtype_name
-from torchrot.generic.optimality import _det
+from torchrot.generic.optimality import determinant
 
-__all__ = ["_maximal_objective"]
+__all__ = ["maximal_objective"]
 
 
-def _maximal_objective(A, lower):
+def maximal_objective(A, lower):
     """max_R tr(R^T A), K's largest eigenvalue, by Laguerre's method on K's
     characteristic polynomial from above (maximal_objective.h, step by step,
     with kernel::Tolerances' sqrt(eps) and step cap); ``lower``: an attained
     objective (the cube start's)."""
-    tol = UNDAMPED[_dtype_name(A[0].dtype)]
-    t = _trace(A)
-    m = _skew_vector(A)
-    w, d, _, _, _ = _cayley_step(A, t, m, 0)  # T = A + A^T - t I is Algorithm 2's H for c = 0
+    tol = UNDAMPED[dtype_name(A[0].dtype)]
+    t = trace(A)
+    m = skew_vector(A)
+    w, d, _, _, _ = cayley_step(A, t, m, 0)  # T = A + A^T - t I is Algorithm 2's H for c = 0
     p0 = t * d - (m[0] * w[0] + m[1] * w[1] + m[2] * w[2])  # det K
     norm2 = sum(a * a for a in A)
-    p2, p1 = -2 * norm2, -8 * _det(A)
+    p2, p1 = -2 * norm2, -8 * determinant(A)
     x = torch.sqrt(3 * norm2)
     active = x > 0
     for _ in range(OBJECTIVE_LAGUERRE_STEPS):

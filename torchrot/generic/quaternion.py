@@ -8,12 +8,12 @@ the same t, m and T as the Cayley step, Eqs. 12 and 36).
 """
 from __future__ import annotations
 
-from torchrot.generic.cayley import _skew_vector, _trace
+from torchrot.generic.cayley import skew_vector, trace
 
-__all__ = ["_quaternion_rotation", "_horn"]
+__all__ = ["quaternion_rotation", "horn_matrix"]
 
 
-def _quaternion_rotation(w, x, y, z):
+def quaternion_rotation(w, x, y, z):
     """The rotation matrix (9 entries, row-major) of the unit quaternion
     (w, x, y, z), column-vector convention."""
     return [
@@ -23,10 +23,10 @@ def _quaternion_rotation(w, x, y, z):
     ]
 
 
-def _horn(M):
+def horn_matrix(M):
     """Horn's K (16 entries, row-major)."""
-    t = _trace(M)
-    m = _skew_vector(M)
+    t = trace(M)
+    m = skew_vector(M)
     K = [None] * 16
     K[0] = t
     for i in range(3):

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import torch
 
-from torchrot.generic.mat3 import _mul
+from torchrot.generic.mat3 import times
 
-__all__ = ["_saddle_escape_rotation"]
+__all__ = ["saddle_escape_rotation"]
 
 
-def _saddle_escape_rotation(S, squarings=4):
+def saddle_escape_rotation(S, squarings=4):
     """The half-turn that takes the saddle S = R^T M (nearly) to the maximum
     (``squarings``: the kernel's kEscapeSquarings)."""
     B = [0.5 * (S[3 * r + c] + S[3 * c + r]) for r in range(3) for c in range(3)]
@@ -27,7 +27,7 @@ def _saddle_escape_rotation(S, squarings=4):
     for _ in range(squarings):
         inv_trace = 1 / (B[0] + B[4] + B[8])
         B = [b * inv_trace for b in B]
-        B = _mul(B, B)
+        B = times(B, B)
     v = [B[0], B[3], B[6]]
     vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
     for c in (1, 2):

@@ -25,8 +25,8 @@ import torch
 
 from torchrot._constants import CONVERGED_CAP, MAX_ESCAPES
 from torchrot.generic.control_flow import _INT, _LANE_KEYS, _any, _compiling, _repeat
-from torchrot.generic.fit_rotation_impl import _advance_and_finish, _cleaned_up, _step
-from torchrot.generic.mat3 import _where
+from torchrot.generic.fit_rotation_impl import _cleaned_up, _step, advance, finish
+from torchrot.generic.lanes import select
 
 __all__ = [
     "FULL_STEPS",
@@ -155,7 +155,8 @@ def fit_soa(A, R, running, variant, max_iter, eps, objective=None):
             idx = sel.nonzero().squeeze(1)
             sub = {"A": [a[idx] for a in st["A"]], "R": [r[idx] for r in st["R"]],
                    **{k: st[k][idx] for k in _LANE_KEYS}}
-            R_sub, sub = _advance_and_finish(sub, rest, variant, converge, cap, eps)
+            sub = advance(sub, rest, variant, converge, cap, eps)
+            R_sub = finish(sub, converge)
             put = lambda x, y: x.index_put((idx,), y)
             return ([put(r, rs) for r, rs in zip(R, R_sub)], put(st["iterations"], sub["iterations"]),
                     put(st["fallback"], sub["fallback"]))
@@ -163,15 +164,17 @@ def fit_soa(A, R, running, variant, max_iter, eps, objective=None):
     sub = {"A": [_gather(a, idx, n) for a in st["A"]], "R": [_gather(r, idx, n) for r in st["R"]]}
     for k in _LANE_KEYS:
         sub[k] = _gather(st[k], idx, n)
-    R_sub, sub = _advance_and_finish(_masked_lanes(sub, valid), rest, variant, converge, cap, eps)
+    sub = advance(_masked_lanes(sub, valid), rest, variant, converge, cap, eps)
+    R_sub = finish(sub, converge)
     R = [_scatter_back(r, rs, idx, valid) for r, rs in zip(R, R_sub)]
     iterations = _scatter_back(st["iterations"], sub["iterations"], idx, valid)
     fallback = _scatter_back(st["fallback"], sub["fallback"], idx, valid)
     if _compiling() or _any(overflow):
         # The lanes that did not fit, on the whole batch, masked (eager:
         # only when there are such lanes; compiled: its loop stops at once).
-        R_ov, ov = _advance_and_finish(_masked_lanes(st, overflow), rest, variant, converge, cap, eps)
-        R = _where(overflow, R_ov, R)
+        ov = advance(_masked_lanes(st, overflow), rest, variant, converge, cap, eps)
+        R_ov = finish(ov, converge)
+        R = select(overflow, R_ov, R)
         iterations = torch.where(overflow, ov["iterations"], iterations)
         fallback = torch.where(overflow, ov["fallback"], fallback)
     return R, iterations, fallback

@@ -22,8 +22,9 @@ from torchrot._checks import bad_init_error, check_all, check_backward, check_gr
 from torchrot._constants import DEFAULT_VARIANT, GRADIENT_EPS, FitStatus
 from torchrot._layout import empty_result
 from torchrot.generic.driver import _components
-from torchrot.generic.fit_rotation_impl import _normalized
-from torchrot.generic.horn_fallback import _horn_rotation
+from torchrot.generic.horn_fallback import horn_rotation
+from torchrot.generic.lanes import max_abs_entry
+from torchrot.generic.unit_scale import unit_scale
 from torchrot.triton.fit_rotation_kernel import compute_dtype, count_bad_warm_starts, fit_batch
 from torchrot.triton.rotation_gradient_kernel import tangent_batch
 
@@ -76,12 +77,13 @@ def _check_warm_starts(init: torch.Tensor, compute: torch.dtype) -> bool:
     return unclean == 0
 
 
-def _solve_fallback_lanes(M: torch.Tensor, out: torch.Tensor, lanes: torch.Tensor) -> None:
+def solve_fallback_lanes(M: torch.Tensor, out: torch.Tensor, lanes: torch.Tensor) -> None:
     """The fallback lanes of ``out`` (n, 3, 3), solved exactly: Horn's method
     on M scaled as the kernel scales it (torchrot.generic.horn_fallback)."""
     k = lanes.numel()
-    A = _normalized(_components(M[lanes].to(compute_dtype(M.dtype)), k))[0]
-    out[lanes] = torch.stack(_horn_rotation(A), -1).reshape(k, 3, 3).to(out.dtype)
+    M_lanes = _components(M[lanes].to(compute_dtype(M.dtype)), k)
+    A = unit_scale(M_lanes, max_abs_entry(M_lanes))[0]
+    out[lanes] = torch.stack(horn_rotation(A), -1).reshape(k, 3, 3).to(out.dtype)
 
 
 def _run_fit(M, init, out, max_iter, variant, callers_out, iterations=None, status=None):
@@ -117,7 +119,7 @@ def _run_fit(M, init, out, max_iter, variant, callers_out, iterations=None, stat
             _check_warm_starts(init, compute)
             raise bad_init_error(bad, n)  # not reached: the same check found them
         if fallbacks:
-            _solve_fallback_lanes(m_view, out_view, fallback.nonzero().squeeze(1))
+            solve_fallback_lanes(m_view, out_view, fallback.nonzero().squeeze(1))
     if temporary:
         out.copy_(out_view.view(out.shape))
 
