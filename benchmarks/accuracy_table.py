@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 
 import torchrot
+from torchrot.bench.machine import machine_info
 from torchrot.bench.options import positive_int
 from torchrot.bench.registry import VARIANTS
 from torchrot.testing import DISTRIBUTIONS, make_matrices, rotation_errors
@@ -24,6 +25,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=positive_int, default=100_000)
     n = parser.parse_args().n
+    print(f"Machine: {machine_info()}\n")
     print(f"Accuracy against float64 SVD, {n} matrices per distribution, cold start, converged mode\n")
     print("| distribution | torchrot f32 max / median err | f32 SVD max / median err | torchrot f64 max err | "
           "max shortfall f32 / f64 |")

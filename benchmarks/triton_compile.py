@@ -12,10 +12,8 @@ Triton cache. Writes Markdown to stdout.
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
 import statistics
-import sys
 import tempfile
 
 from torchrot.bench.machine import machine_info
@@ -32,7 +30,6 @@ def main() -> None:
     import triton
 
     print(f"# Triton compile time of each kernel\n\nMachine: {machine_info()}, Triton {triton.__version__}\n")
-    print(f"Date: {datetime.date.today().isoformat()}; command: `python {' '.join(sys.argv)}`\n")
     print(f"Seconds per compilation on this CPU (median of {rounds}, each from an empty Triton cache).\n")
     targets = list(TARGETS)
     print("| kernel | " + " | ".join(targets) + " |")

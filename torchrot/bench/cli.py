@@ -20,7 +20,7 @@ from torchrot.bench.plans import FULL, QUICK, plan_cases
 from torchrot.bench.progress import Progress
 from torchrot.bench.registry import WARM_DATA
 from torchrot.bench.results import write_results
-from torchrot.bench.summary import headline
+from torchrot.bench.summary import headline, write_summary
 from torchrot.bench.tables import for_terminal, format_layer_table, format_registration_table, format_tables_narrow
 from torchrot.bench.workloads import registration_rows, rotation_layer, single_matrix_overhead
 
@@ -258,8 +258,11 @@ def bench(args: argparse.Namespace, log=print) -> int:
     if run_apps or (run_micro and set(plan.methods_data) & set(data.RECORDED)):
         log(f"data set cache: {cache}{os.sep} ({_folder_size(cache) / 1e6:.0f} MB; delete it to re-record)")
     log("")
-    for line in headline(rows, layer, registration, apps_rows, output, torch.ops.torchrot.cpu_kernel()):
+    summary = headline(rows, layer, registration, apps_rows, output, torch.ops.torchrot.cpu_kernel())
+    for line in summary:
         log(line)
+    if output:
+        log(f"wrote {write_summary(summary, output)}")
     return 0
 
 

@@ -2,8 +2,10 @@
 busy it was while a table was timed (:class:`Load`)."""
 from __future__ import annotations
 
+import datetime
 import os
 import platform
+import sys
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 
@@ -23,7 +25,9 @@ def _torchrot_version() -> str:
 
 def machine_info() -> dict:
     """torch and torchrot versions, the torchrot CPU kernel that runs, ATen's
-    CPU capability, the CPU count, processor and Python version."""
+    CPU capability, the CPU count, processor and Python version, and the run:
+    its date (UTC) and command line, so that every results file says which
+    version, machine and command wrote it, and when."""
     return {
         "torch": torch.__version__,
         "torchrot": _torchrot_version(),
@@ -32,6 +36,8 @@ def machine_info() -> dict:
         "cores": os.cpu_count(),
         "processor": platform.processor() or platform.machine(),
         "python": platform.python_version(),
+        "date": datetime.datetime.now(datetime.UTC).date().isoformat(),
+        "command": " ".join(["python", *sys.argv]) if sys.argv and sys.argv[0] else "python",
     }
 
 

@@ -6,12 +6,15 @@ import os
 from collections.abc import Iterable
 
 from torchrot._constants import DEFAULT_VARIANT
+from torchrot.bench.machine import machine_info
 from torchrot.bench.rows import Row, table_key
 from torchrot.bench.trust import MARKER
 
-__all__ = ["MAX_LINES", "PEERS", "headline"]
+__all__ = ["MAX_LINES", "PEERS", "SUMMARY_FILE", "headline", "write_summary"]
 
 MAX_LINES = 10
+#: The file the headline is written to in the output folder: the README and the performance page quote it.
+SUMMARY_FILE = "summary.md"
 #: The peers the headline compares with, by Row.key, if they ran.
 PEERS = {"svd": "SVD", "roma": "RoMa", "igl_double": "igl double", "igl_single": "igl single"}
 _MODES = {"converged_cold": "converged cold", "converged_warm": "converged warm", "one_step": "1-step warm"}
@@ -96,3 +99,12 @@ def headline(rows: Iterable[Row], layer: list[dict] | None = None, registration:
     if output:
         lines.append(f"  results: {output}{os.sep} (bench.md, apps.md: every table; .json: every number)")
     return lines[:MAX_LINES]
+
+
+def write_summary(lines: list[str], folder: str) -> str:
+    """The headline ``lines`` as ``folder``/SUMMARY_FILE, under the machine and
+    run that wrote them; returns its path."""
+    path = os.path.join(folder, SUMMARY_FILE)
+    with open(path, "w") as f:
+        f.write(f"Machine: {machine_info()}\n\n```text\n" + "\n".join(lines) + "\n```\n")
+    return path
