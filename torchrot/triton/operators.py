@@ -14,6 +14,7 @@ and a cold fit with ``max_iter`` nothing.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
@@ -68,6 +69,16 @@ def _overlaps_other_than_identity(out: torch.Tensor, t: torch.Tensor | None) -> 
     return low < t_high and t_low < high
 
 
+def _on(device: torch.device):
+    """The context that makes ``device`` current, where Triton launches its
+    kernels (an accelerator's device guard; nothing for CPU tensors, which
+    only Triton's interpreter runs)."""
+    module = getattr(torch, device.type, None)
+    if device.type == "cpu" or module is None or not hasattr(module, "device"):
+        return contextlib.nullcontext()
+    return module.device(device)
+
+
 def _check_warm_starts(init: torch.Tensor, compute: torch.dtype) -> bool:
     """Raises (ValueError) if a warm start of ``init``, in its own shape, is
     not a rotation; returns whether every one is clean (init_known_clean)."""
@@ -87,6 +98,12 @@ def solve_fallback_lanes(M: torch.Tensor, out: torch.Tensor, lanes: torch.Tensor
 
 
 def _run_fit(M, init, out, max_iter, variant, callers_out, iterations=None, status=None):
+    """run_fit on M's device (see _fit)."""
+    with _on(M.device):
+        _fit(M, init, out, max_iter, variant, callers_out, iterations, status)
+
+
+def _fit(M, init, out, max_iter, variant, callers_out, iterations=None, status=None):
     """run_fit: fits M (broadcasting init to it) into ``out`` of M's shape; a
     caller's ``out`` is written only once the call can no longer fail."""
     n = M.numel() // 9
@@ -159,7 +176,9 @@ def _fit_rotation_backward(grad, R, M, gradient_eps=GRADIENT_EPS):
     compute = compute_dtype(R.dtype)
     out_view = _writable_view(out) if compute == R.dtype else None
     target = out_view if out_view is not None else torch.empty(R.shape, dtype=compute, device=R.device).view(-1, 3, 3)
-    tangent_batch(_batch_view(grad, R.shape), _batch_view(R, R.shape), _batch_view(M, R.shape), target, gradient_eps)
+    with _on(R.device):
+        tangent_batch(_batch_view(grad, R.shape), _batch_view(R, R.shape), _batch_view(M, R.shape), target,
+                      gradient_eps)
     if out_view is None:
         out.copy_(target.view(R.shape))
     return out
