@@ -160,11 +160,15 @@ def expected_extra(name: str, n: int, itemsize: int) -> int:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("checks", nargs="*", default=["contiguous", "float64", "strided64"],
-                        choices=["contiguous", "float64", "strided64", "huge"])
+    parser.add_argument("checks", nargs="*", metavar="{contiguous,float64,strided64,huge}")
     parser.add_argument("--n", type=float, help="matrices (default 5e7; huge: 2.4e8)")
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     args = parser.parse_args()
+    # (Checked here, not with choices=: argparse checks an empty nargs="*" list against them as one value.)
+    args.checks = args.checks or ["contiguous", "float64", "strided64"]
+    unknown = set(args.checks) - {"contiguous", "float64", "strided64", "huge"}
+    if unknown:
+        parser.error(f"unknown checks {sorted(unknown)}; known: contiguous float64 strided64 huge")
     failed = False
     for check in args.checks:
         n = int(args.n or (2.4e8 if check == "huge" else 5e7))
