@@ -154,7 +154,7 @@ at::Tensor fit_rotation_backward_autograd(c10::DispatchKeySet keys, const at::Te
 // once out is written, so that autograd refuses to differentiate through
 // values it overwrote (a saved R, say); an inference tensor is written only
 // in inference mode (checked with the other arguments, before anything is
-// written: ops.cpp's check_out, torchrot/_checks.py). No gradient flows to
+// written: check_out in ops/checks.cpp, torchrot/_checks.py). No gradient flows to
 // init, so an init that requires grad is allowed, as in fit_rotation.
 
 bool out_needs_derivative(const at::Tensor& M, const at::Tensor& out) {

@@ -1,5 +1,6 @@
 // Makes the shared library importable as torchrot._C. Importing it runs the
-// static initialisers of ops.cpp, which register torch.ops.torchrot.*. Its
+// static initialisers of ops/schemas.cpp, ops/fit_rotation_cpu.cpp and
+// autograd.cpp, which register torch.ops.torchrot.* and their kernels. Its
 // Python functions: constants() hands the limits of limits.h, the status
 // codes of fit_rotation.h and the messages of messages.h to the Python
 // layers (torchrot/_constants.py), so that they are defined once;
