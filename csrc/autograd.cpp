@@ -2,20 +2,21 @@
 //
 // Every call of them passes here: torch.ops.torchrot.*, torchrot.fit_rotation
 // (whose plain eager call enters from C++, csrc/module.cpp) and the calls in
-// torch.compile'd graphs, which come with grad mode off. A call that can
-// record no derivative runs below autograd; a plain reverse-mode fit (M
-// requires grad) records FitRotationAutograd, a C++ node with the derivative
-// of the Python Autograd kernel (torchrot/_autograd.py, FitRotationFunction),
-// whose Python forward, context and backward cost several times the fit of a
-// small batch; every other call (a torch.func transform, a tangent, a traced
-// or torch_dispatch tensor, a backward to be differentiated) goes on to that
+// torch.compile'd graphs, which come with grad mode off. A call that can record
+// no derivative runs below autograd; a plain reverse-mode fit (M requires grad)
+// records FitRotationAutograd, a C++ node with the derivative of the Python
+// Autograd kernel (torchrot/_autograd.py, FitRotationFunction), whose Python
+// forward, context and backward cost several times the fit of a small batch;
+// every other call (a torch.func transform, a tangent, a traced or
+// torch_dispatch tensor, a backward to be differentiated) goes on to that
 // Python kernel, registered on the operator's twin
 // torchrot::_<name>_python_autograd (the same schema): the
 // torch.autograd.Functions that record the derivatives in both modes and at
 // every torch.func level. (That Python kernel once ran on every call of the
-// operators, also those with nothing to record: ~6 us, more than the fit of
-// 64 matrices.) The derivative is the optimality-condition tangent of
-// csrc/kernel/rotation_gradient.h, the operator torchrot::fit_rotation_backward.
+// operators, also those with nothing to record, and cost more than the fit of a
+// small batch: benchmarks/lab_notes.md.) The derivative is the
+// optimality-condition tangent of csrc/kernel/rotation_gradient.h, the operator
+// torchrot::fit_rotation_backward.
 
 #include <ATen/core/LegacyTypeDispatch.h>
 #include <ATen/core/Tensor.h>

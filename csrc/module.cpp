@@ -138,16 +138,15 @@ PyObject* constants(PyObject*, PyObject*) {
 }
 
 // fit_rotation_eager(M, init, max_iter, variant, gradient_eps, out): the
-// operator torchrot::fit_rotation (its Autograd kernel: csrc/autograd.cpp),
-// or torchrot::fit_rotation_out where out is a tensor, called through the
-// dispatcher as torch.ops calls them (the GIL released around it), but
-// without torch.ops' Python argument parsing and boxing, which cost more than
-// half of a one-matrix call on this project's VM (12.2 against 5.7 us; with
-// out, 3.6 against 2.4). The arguments are the operator's, already
-// type-checked by torchrot.fit_rotation. Returns R, or out itself; or
-// NotImplemented, before doing anything, where torch.ops would do more than
-// call the operator or where an argument is not of the plain type it
-// converts: a tensor subclass (its __torch_function__), an active torch
+// operator torchrot::fit_rotation (its Autograd kernel: csrc/autograd.cpp), or
+// torchrot::fit_rotation_out where out is a tensor, called through the
+// dispatcher as torch.ops calls them (the GIL released around it), but without
+// torch.ops' Python argument parsing and boxing, a large part of a one-matrix
+// call's cost, with out= as well (benchmarks/lab_notes.md). The arguments are
+// the operator's, already type-checked by torchrot.fit_rotation. Returns R, or
+// out itself; or NotImplemented, before doing anything, where torch.ops would
+// do more than call the operator or where an argument is not of the plain type
+// it converts: a tensor subclass (its __torch_function__), an active torch
 // function mode, max_iter beyond int64; the caller then calls the operator
 // through torch.ops, which handles or rejects them.
 PyObject* fit_rotation_eager(PyObject*, PyObject* const* args, Py_ssize_t nargs) {
