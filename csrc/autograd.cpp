@@ -87,7 +87,8 @@ using torch_internals::functorch_transforms_active;
 // forward AD opens level 0 only; a dual level open around tensors without
 // tangents records nothing, in either kernel).
 bool has_tangent(const at::Tensor& tensor) {
-  return torch_internals::forward_grad_mode_enabled() && tensor._fw_grad(/*level=*/0).defined();
+  return torch_internals::forward_grad_mode_enabled() &&
+         torch_internals::forward_tangent(tensor, /*level=*/0).defined();
 }
 
 bool records_reverse(const at::Tensor& tensor) { return at::GradMode::is_enabled() && tensor.requires_grad(); }
