@@ -63,20 +63,20 @@ if not SUPPORTED_TORCH[0] <= TORCH_RELEASE <= SUPPORTED_TORCH[1]:
     )
 
 # -fopenmp: at::parallel_for is serial without it. -g0: no debug information
-# (Python's own CFLAGS ask for -g; it doubled the compile time of the kernel
-# objects, measured). -Wno-unknown-pragmas: torch's vector headers carry CUDA's
-# and clang's pragmas, which GCC reports 78 times per build. The C++ standard
-# is left to torch (see above).
+# (Python's own CFLAGS ask for -g, which made the kernel objects much slower to
+# compile: benchmarks/lab_notes.md). -Wno-unknown-pragmas: torch's vector
+# headers carry CUDA's and clang's pragmas, which GCC reports 78 times per
+# build. The C++ standard is left to torch (see above).
 COMMON_FLAGS = ["-g0", "-fopenmp", "-fvisibility=hidden", "-ffp-contract=off", "-Wno-unknown-pragmas"]
 # The kernels are the hot code: -O3. The operator sources only check, lay out
-# and dispatch (microseconds per call, the same at -O2 and -O3): -O2 cut their
-# compile time by a quarter (58 -> 46 s, measured).
+# and dispatch (as fast at -O2 as at -O3), and compile faster at -O2
+# (benchmarks/lab_notes.md).
 KERNEL_OPTIMIZATION = ["-O3"]
 OPERATOR_OPTIMIZATION = ["-O2"]
-# x86-64's default kernel serves only CPUs without AVX2 (and its arrays-and-loops
-# Vectorized is inlined by GCC_FLAGS below): -O2 halved its compile time (52 ->
-# 24 s of CPU, measured), the longest of the build. On other targets the default
-# kernel is the main one (NEON): -O3 there.
+# x86-64's default kernel serves only CPUs without AVX2 (and its
+# arrays-and-loops Vectorized is inlined by GCC_FLAGS below): at -O2 the longest
+# object of the build compiles much faster (benchmarks/lab_notes.md). On other
+# targets the default kernel is the main one (NEON): -O3 there.
 X86_64_DEFAULT_OPTIMIZATION = ["-O2"]
 
 # Sanitizer build (.ci/sanitize): TORCHROT_SANITIZE=address,undefined compiles
@@ -96,9 +96,10 @@ SANITIZE_FLAGS = (
 OPERATOR_SOURCES = sorted(glob.glob("csrc/*.cpp") + glob.glob("csrc/ops/*.cpp")) + ["csrc/cpu/dispatch.cpp"]
 # The small operator sources compile as one translation unit (a unity build,
 # generated in the build folder: one #include per source): each spends most of
-# its time parsing torch's Tensor headers, so as 9 objects they took ~60 s of
-# CPU and as one ~12 (measured). The sources stay a file per job. autograd.cpp
-# and module.cpp (torch's autograd and Python headers) stay objects of their own.
+# its time parsing torch's Tensor headers, so as one they take a fraction of the
+# CPU time of an object each (benchmarks/lab_notes.md). The sources stay a file
+# per job. autograd.cpp and module.cpp (torch's autograd and Python headers)
+# stay objects of their own.
 UNITY_SOURCES = [source for source in OPERATOR_SOURCES if source not in ("csrc/autograd.cpp", "csrc/module.cpp")]
 UNITY_NAME = "operators_unity.cpp"
 BASELINE_KERNELS = [  # (source, flags): every target
@@ -108,8 +109,9 @@ BASELINE_KERNELS = [  # (source, flags): every target
 # GCC only: ATen's generic Vectorized (the default object) is arrays and
 # loops, so every +, * is a call unless inlined, and the fits are single large
 # functions: GCC stopped inlining them at its large-function-growth limit
-# (100%), which left ~140 calls per one-step block and made that kernel 30-60%
-# slower (measured on x86-64, after an unrelated change moved the limit).
+# (100%), which left calls to them in every one-step block and made that kernel
+# markedly slower (on x86-64, after an unrelated change moved the limit:
+# benchmarks/lab_notes.md).
 GCC_FLAGS = {"csrc/cpu/kernel_default.cpp": ["--param=large-function-growth=100000", "-Wno-psabi"]}
 X86_64_KERNELS = [  # x86-64 targets only
     ("csrc/cpu/kernel_avx2.cpp", ["-DCPU_CAPABILITY=AVX2", "-DCPU_CAPABILITY_AVX2", "-mavx2", "-mfma", "-mf16c"]),
@@ -123,8 +125,9 @@ X86_64_KERNELS = [  # x86-64 targets only
          "-Wno-uninitialized", "-Wno-maybe-uninitialized"],
     ),
 ]
-# Compile seconds on a 2-core x86-64 VM (GCC 12, torch 2.13): the parallel
-# build starts the longest first, so that no long object is left to the end.
+# Each object's compile time in seconds, taken once (GCC 12, torch 2.13) and
+# used only for their order: the parallel build starts the longest first, so
+# that no long object is left to the end.
 COMPILE_SECONDS = {"csrc/cpu/kernel_default.cpp": 30, "csrc/cpu/kernel_avx2.cpp": 29, "csrc/cpu/kernel_avx512.cpp": 26,
                    "csrc/autograd.cpp": 19, "csrc/module.cpp": 18, UNITY_NAME: 14, "csrc/cpu/kernel_scalar.cpp": 12}
 

@@ -2,20 +2,21 @@
 //
 // Every call of them passes here: torch.ops.torchrot.*, torchrot.fit_rotation
 // (whose plain eager call enters from C++, csrc/module.cpp) and the calls in
-// torch.compile'd graphs, which come with grad mode off. A call that can
-// record no derivative runs below autograd; a plain reverse-mode fit (M
-// requires grad) records FitRotationAutograd, a C++ node with the derivative
-// of the Python Autograd kernel (torchrot/_autograd.py, FitRotationFunction),
-// whose Python forward, context and backward cost several times the fit of a
-// small batch; every other call (a torch.func transform, a tangent, a traced
-// or torch_dispatch tensor, a backward to be differentiated) goes on to that
+// torch.compile'd graphs, which come with grad mode off. A call that can record
+// no derivative runs below autograd; a plain reverse-mode fit (M requires grad)
+// records FitRotationAutograd, a C++ node with the derivative of the Python
+// Autograd kernel (torchrot/_autograd.py, FitRotationFunction), whose Python
+// forward, context and backward cost several times the fit of a small batch;
+// every other call (a torch.func transform, a tangent, a traced or
+// torch_dispatch tensor, a backward to be differentiated) goes on to that
 // Python kernel, registered on the operator's twin
 // torchrot::_<name>_python_autograd (the same schema): the
 // torch.autograd.Functions that record the derivatives in both modes and at
 // every torch.func level. (That Python kernel once ran on every call of the
-// operators, also those with nothing to record: ~6 us, more than the fit of
-// 64 matrices.) The derivative is the optimality-condition tangent of
-// csrc/kernel/rotation_gradient.h, the operator torchrot::fit_rotation_backward.
+// operators, also those with nothing to record, and cost more than the fit of a
+// small batch: benchmarks/lab_notes.md.) The derivative is the
+// optimality-condition tangent of csrc/kernel/rotation_gradient.h, the operator
+// torchrot::fit_rotation_backward.
 
 #include <ATen/core/LegacyTypeDispatch.h>
 #include <ATen/core/Tensor.h>
@@ -86,7 +87,8 @@ using torch_internals::functorch_transforms_active;
 // forward AD opens level 0 only; a dual level open around tensors without
 // tangents records nothing, in either kernel).
 bool has_tangent(const at::Tensor& tensor) {
-  return torch_internals::forward_grad_mode_enabled() && tensor._fw_grad(/*level=*/0).defined();
+  return torch_internals::forward_grad_mode_enabled() &&
+         torch_internals::forward_tangent(tensor, /*level=*/0).defined();
 }
 
 bool records_reverse(const at::Tensor& tensor) { return at::GradMode::is_enabled() && tensor.requires_grad(); }
@@ -154,7 +156,7 @@ at::Tensor fit_rotation_backward_autograd(c10::DispatchKeySet keys, const at::Te
 // once out is written, so that autograd refuses to differentiate through
 // values it overwrote (a saved R, say); an inference tensor is written only
 // in inference mode (checked with the other arguments, before anything is
-// written: ops.cpp's check_out, torchrot/_checks.py). No gradient flows to
+// written: check_out in ops/checks.cpp, torchrot/_checks.py). No gradient flows to
 // init, so an init that requires grad is allowed, as in fit_rotation.
 
 bool out_needs_derivative(const at::Tensor& M, const at::Tensor& out) {

@@ -1,4 +1,5 @@
-// Interface between the operator registration (ops.cpp) and the CPU kernels.
+// Interface between the CPU operators (ops/fit_rotation_cpu.cpp) and the CPU
+// kernels (cpu/dispatch.cpp).
 // Nothing here depends on the instruction set the kernels are compiled for.
 #pragma once
 

@@ -1,15 +1,16 @@
 // Every limit, default and tolerance of torchrot, defined once. The kernels
-// (kernel/fit_rotation_impl.h), the operator checks and schemas (ops.cpp) read
-// them here; Python reads them through torchrot._C.constants() (module.cpp),
-// so the fake kernels, the argument checks and the pure-PyTorch path
-// (torchrot/_constants.py, torchrot/reference.py) cannot drift from the kernel.
+// (kernel/fit_rotation_impl.h), the operator checks and schemas
+// (ops/checks.cpp, ops/schemas.h) read them here; Python reads them through
+// torchrot._C.constants() (module.cpp), so the fake kernels, the argument
+// checks and the pure-PyTorch path (torchrot/_constants.py,
+// torchrot/reference.py) cannot drift from the kernel.
 // Nothing here depends on the instruction set.
 #pragma once
 
 #include <cstdint>
 
 // Default damping of the derivative, as a literal so that the operator
-// schemas (ops.cpp) can spell it: lambda = gradient_eps |M|_F (see
+// schemas (ops/schemas.h) can spell it: lambda = gradient_eps |M|_F (see
 // kernel/rotation_gradient.h).
 #define TORCHROT_DEFAULT_GRADIENT_EPS 1e-6
 

@@ -1,6 +1,7 @@
 // Typed handles of torchrot's own operators, for the C++ code that calls
 // them through the dispatcher (autograd.cpp, module.cpp) rather than
-// through Python. The schemas themselves are defined once, in ops.cpp.
+// through Python. The schemas themselves are defined once, in ops/schemas.cpp
+// (their argument lists in ops/schemas.h).
 #pragma once
 
 #include <ATen/core/Tensor.h>

@@ -1,21 +1,28 @@
-"""The private torch names torchrot uses (torchrot/_torch_private.py), each
-checked for what torchrot relies on, on the installed torch: CI runs this on
-the oldest and the newest supported release, so that a name that moves or
-changes fails here, loudly, rather than in a user's torch.func transform.
+"""The private torch names torchrot uses, each checked for what torchrot
+relies on, on the installed torch: Python's (torchrot/_torch_private.py) and
+C++'s (csrc/torch_internals.h, through the extension's test-only functions
+torchrot._C._torch_internals_*, one per wrapper). CI runs this on the oldest
+and the newest supported release, so that a name that moves or changes fails
+here, loudly, rather than in a user's torch.func transform.
 
-Also: no other module of torchrot reaches into torch's private modules."""
+Also: no other module of torchrot reaches into torch's private modules, and
+no other source of csrc/ names torch's internals."""
 from __future__ import annotations
 
 import pathlib
 import re
+import warnings
 
+import pytest
 import torch
 from torch.autograd import forward_ad
 
 import torchrot
+from torchrot import _C
 from torchrot import _torch_private as private
 
 PACKAGE = pathlib.Path(torchrot.__file__).parent
+CSRC = pathlib.Path(__file__).resolve().parents[1] / "csrc"
 M = torch.randn(6, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
 
 
@@ -117,3 +124,158 @@ def test_unwrap_dead_wrappers_and_single_level_mode():
     assert private.unwrap_dead_wrappers((M,))[0] is M
     with private.enable_single_level_autograd_function():
         pass
+
+
+# The C++ side: csrc/torch_internals.h, one test per wrapper.
+
+#: What names a torch internal in C++: impl and detail namespaces, thread-local
+#: state, underscored Tensor methods, the Python bindings of torch/csrc.
+CPP_INTERNAL = re.compile(
+    r"\b(?:at|c10)::(?:impl|detail)::|\bget_tls_state\b|\btls_\w+|\._fw_grad\b|\bTHP\w+|"
+    r"\b(?:END_)?HANDLE_TH_ERRORS\b|torch/csrc/(?!autograd/custom_function\.h)")
+
+
+@pytest.mark.skipif(not CSRC.is_dir(), reason="needs the source tree")
+def test_no_other_source_uses_torch_internals():
+    """Outside csrc/torch_internals.h, csrc/ names no torch internal (comments
+    aside): the rest of the C++ side calls the wrappers."""
+    offenders = []
+    for path in sorted(CSRC.rglob("*")):
+        if path.suffix not in (".h", ".cpp") or path.name == "torch_internals.h":
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            if CPP_INTERNAL.search(line.split("//")[0]):
+                offenders.append(f"{path.relative_to(CSRC)}:{number}: {line.strip()}")
+    assert not offenders, "\n".join(offenders)
+    header = (CSRC / "torch_internals.h").read_text()
+    for name in ("tls_local_dispatch_key_set", "get_tls_state", "at::impl::torch_function_mode_enabled", "_fw_grad",
+                 "at::detail::computeStride", "THPVariable_CheckExact", "THPVariable_Unpack", "THPVariable_Wrap",
+                 "HANDLE_TH_ERRORS", "END_HANDLE_TH_ERRORS"):
+        assert name in header, name
+
+
+def test_cpp_functorch_transforms_active():
+    """torch_internals::functorch_transforms_active (the dispatch keys of
+    c10::impl::tls_local_dispatch_key_set) agrees with torch's own test,
+    outside and inside transforms."""
+    seen = []
+
+    def probe(x):
+        seen.append((_C._torch_internals_functorch_transforms_active(), private.functorch_transforms_active()))
+        return x.sum()
+
+    assert _C._torch_internals_functorch_transforms_active() is False
+    torch.func.grad(probe)(M)
+    torch.func.vmap(probe)(M)
+    assert seen == [(True, True), (True, True)]
+    assert _C._torch_internals_functorch_transforms_active() is False
+
+
+def test_cpp_forward_grad_mode_enabled():
+    """torch_internals::forward_grad_mode_enabled
+    (c10::AutogradState::get_tls_state().get_fw_grad_mode()) follows torch's
+    switch of forward-mode AD."""
+    assert _C._torch_internals_forward_grad_mode_enabled() is True
+    previous = torch._C._is_fwd_grad_enabled()
+    torch._C._set_fwd_grad_enabled(False)
+    try:
+        assert _C._torch_internals_forward_grad_mode_enabled() is False
+    finally:
+        torch._C._set_fwd_grad_enabled(previous)
+    assert _C._torch_internals_forward_grad_mode_enabled() is True
+
+
+def test_cpp_torch_function_mode_enabled():
+    """torch_internals::torch_function_mode_enabled
+    (at::impl::torch_function_mode_enabled) sees a Python torch function mode."""
+
+    class Mode(torch.overrides.TorchFunctionMode):
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            return func(*args, **(kwargs or {}))
+
+    assert _C._torch_internals_torch_function_mode_enabled() is False
+    with Mode():
+        assert _C._torch_internals_torch_function_mode_enabled() is True
+    assert _C._torch_internals_torch_function_mode_enabled() is False
+
+
+def test_cpp_forward_tangent():
+    """torch_internals::forward_tangent (Tensor::_fw_grad) gives the tangent of
+    a dual tensor at level 0, and none for a plain one."""
+    tangent = torch.randn_like(M)
+    assert _C._torch_internals_forward_tangent(M) is None
+    with forward_ad.dual_level():
+        dual = forward_ad.make_dual(M, tangent)
+        assert torch.equal(_C._torch_internals_forward_tangent(dual), tangent)
+        assert _C._torch_internals_forward_tangent(M) is None
+
+
+def test_cpp_view_strides():
+    """torch_internals::view_strides (at::detail::computeStride) gives the
+    strides Tensor.view gives, and None exactly where view raises, for the
+    batch views of csrc/ops/layout.cpp."""
+    base = torch.zeros(4, 6, 3, 3)
+    tensors = [base, base.transpose(0, 1), base[:, ::2], base.permute(2, 3, 0, 1).contiguous().permute(2, 3, 0, 1),
+               base.mT, base[:1].expand(4, 6, 3, 3), base.unsqueeze(1)]
+    shapes = [(-1, 3, 3), (4, 6, 3, 3), (4, -1, 3, 3), (8, 3, 3, 3)]
+    checked = 0
+    for t in tensors:
+        for shape in shapes:
+            new = list(shape)
+            if -1 in new:
+                new[new.index(-1)] = t.numel() // (-torch.tensor(shape).prod().item())
+            if torch.Size(new).numel() != t.numel():
+                continue
+            try:
+                expected = tuple(t.view(new).stride())
+            except RuntimeError:
+                expected = None
+            assert _C._torch_internals_view_strides(t.shape, t.stride(), new) == expected, (t.stride(), new)
+            checked += 1
+    assert checked >= 20
+
+
+def test_cpp_is_exact_tensor():
+    """torch_internals::is_exact_tensor (THPVariable_CheckExact): a tensor or
+    a Parameter, not a subclass nor anything else."""
+
+    class Sub(torch.Tensor):
+        pass
+
+    assert _C._torch_internals_is_exact_tensor(M) is True
+    assert _C._torch_internals_is_exact_tensor(torch.nn.Parameter(M.clone())) is True
+    assert _C._torch_internals_is_exact_tensor(M.as_subclass(Sub)) is False
+    assert _C._torch_internals_is_exact_tensor(M.numpy()) is False
+    assert _C._torch_internals_is_exact_tensor(None) is False
+
+
+def test_cpp_unpack_tensor():
+    """torch_internals::unpack_tensor (THPVariable_Unpack) gives the tensor of
+    the Python object: its data and sizes."""
+    view = M[1:, :, 1]
+    assert _C._torch_internals_unpack_tensor(view) == (view.data_ptr(), tuple(view.shape))
+    assert _C._torch_internals_unpack_tensor(M) == (M.data_ptr(), tuple(M.shape))
+
+
+def test_cpp_wrap_tensor():
+    """torch_internals::wrap_tensor (THPVariable_Wrap) gives a tensor's own
+    Python object back, and a new torch.Tensor for a new tensor."""
+    same, copy = _C._torch_internals_wrap_tensor(M)
+    assert same is M
+    assert type(copy) is torch.Tensor and copy is not M and torch.equal(copy, M)
+    assert copy.data_ptr() != M.data_ptr()
+
+
+@pytest.mark.parametrize(("kind", "error"), [("runtime", RuntimeError), ("value", ValueError), ("type", TypeError),
+                                             ("index", IndexError)])
+def test_cpp_torch_errors(kind, error):
+    """TORCHROT_BEGIN_TORCH_ERRORS / TORCHROT_END_TORCH_ERRORS (HANDLE_TH_ERRORS,
+    END_HANDLE_TH_ERRORS) raise TORCH_CHECK's errors as the Python exceptions
+    docs/errors.md promises, with their messages, and TORCH_WARN as a warning."""
+    with pytest.raises(error, match=f"torchrot test error: {kind}"):
+        _C._torch_internals_raise(kind)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert _C._torch_internals_raise("warn") is None
+    assert [str(w.message).startswith("torchrot test warning") for w in caught] == [True]
+

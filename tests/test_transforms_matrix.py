@@ -220,7 +220,7 @@ TARGET_INPUTS = (
 )
 MODES = ("eager", "compile", "fullgraph")
 PATHS = ("cpu", "generic")
-# Compiling costs 0.3-3 s a graph (dynamo tracing the transforms). Every
+# Compiling is the slow part (dynamo tracing the transforms, per graph). Every
 # target runs every transform in eager; compiled, fit_rotation and
 # rigid_registration run every transform and the wrappers (the operator, the
 # modules) a sample. Without a graph break, fullgraph=False traces the very

@@ -45,8 +45,8 @@ def _message(key: str, op: str = OP_NAME, **fields) -> str:
 
 
 def broadcast_shapes(*shapes: torch.Size) -> torch.Size:
-    """torch.broadcast_shapes, without its cost (~7 us, more than a small fit)
-    where the shapes are equal, the common call."""
+    """torch.broadcast_shapes, without its cost (more than a small fit's:
+    benchmarks/lab_notes.md) where the shapes are equal, the common call."""
     if all(shape == shapes[0] for shape in shapes[1:]):
         return torch.Size(shapes[0])
     return torch.broadcast_shapes(*shapes)

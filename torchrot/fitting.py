@@ -27,8 +27,8 @@ from torchrot._torch_private import below_autograd, forward_level, functorch_tra
 
 __all__ = ["FitInfo", "fit_rotation", "fit_rotation_info"]
 
-# The operators, bound once (a lookup through torch.ops costs about a
-# microsecond a call), the direct entry of plain eager calls (csrc/module.cpp:
+# The operators, bound once (a lookup through torch.ops on every call would
+# add to every call's fixed cost), the direct entry of plain eager calls (csrc/module.cpp:
 # without torch.ops' argument parsing; NotImplemented where torch.ops is
 # needed) and the dtypes that entry takes.
 _fit_rotation_op = torch.ops.torchrot.fit_rotation.default

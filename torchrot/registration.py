@@ -138,8 +138,9 @@ def rigid_registration(
     compute = torch.float32 if dtype in _COMPUTE_IN_FLOAT32 else dtype
     # Autocast would run the covariance products in bf16; they need the input
     # precision. (Devices without autocast, such as meta, have none to turn off:
-    # torch.autocast raises for them. Entering it costs ~3 us, so eager calls
-    # where autocast is off skip it.)
+    # torch.autocast raises for them. Entering it is a noticeable part of a
+    # small call's cost, so eager calls where autocast is off skip it:
+    # benchmarks/lab_notes.md.)
     device_type = x.device.type
     autocast_on = autocast_available(device_type) and \
         (torch.compiler.is_compiling() or torch.is_autocast_enabled(device_type))
@@ -149,7 +150,7 @@ def rigid_registration(
             x, y = x.to(compute), y.to(compute)
             weights = None if weights is None else weights.to(compute)
         R, t, s = _solve(x, y, weights, scale, init)
-    if compute != dtype:  # (Tensor.to costs ~0.7 us even where it returns its tensor)
+    if compute != dtype:  # (Tensor.to has a cost even where it returns its tensor)
         R, t, s = R.to(dtype), t.to(dtype), s.to(dtype)
     return RigidTransform(R, t, s)
 
@@ -159,9 +160,9 @@ def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor
 
     The points are first copied to coordinate rows, ``(..., 3, N)``, so that the
     centring, the weighting and the reductions run along the points, contiguous:
-    on ``(..., N, 3)`` every elementwise op runs inner loops of 3 elements
-    (measured, 1,024 problems of 64 points, float32, 1 thread: the centring of x
-    took 240 us as ``x - x̄``, 18 us on the rows, 76 us the copy to them).
+    on ``(..., N, 3)`` every elementwise op runs inner loops of 3 elements,
+    slower than the copy to the rows and the op on them together
+    (benchmarks/lab_notes.md).
     """
     x_rows = x.mT.contiguous()  # (..., 3, N)
     y_rows = y.mT.contiguous()

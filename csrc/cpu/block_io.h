@@ -68,10 +68,10 @@ inline bool is_soa_batch(const Layout& layout) { return layout.stride[0] == 1; }
 // Blocks ahead that the vector paths prefetch. The SoA paths prefetch each
 // of their nine entry streams per tensor (M, init and out make 27 streams,
 // more than the hardware prefetchers follow); the contiguous paths every
-// cache line of the block's 9 W values, for the hours when this VM's
-// hardware prefetchers left the contiguous loops waiting on memory at
-// N = 1e6 (2-3x slower then; in other hours the prefetch changes nothing:
-// measured in benchmarks/lab_notes.md, "Fewer instructions").
+// cache line of the block's 9 W values, for machines whose hardware
+// prefetchers at times leave the contiguous loops of large batches waiting on
+// memory (where they keep up, the prefetch changes nothing:
+// benchmarks/lab_notes.md, "Fewer instructions").
 constexpr int64_t kPrefetchBlocks = 4;
 
 template <typename L, int kWrite>
@@ -101,8 +101,8 @@ TORCHROT_INLINE void prefetch_tiles(const typename L::Scalar* data, const Layout
 
 // load_block and store_block of vector lanes through a buffer, element by
 // element: for any strides and for tail blocks. Out of line, so that the
-// vector paths of the callers keep their registers (measured: inlined, they
-// made the SoA one-step fit 10% slower).
+// vector paths of the callers keep their registers (inlined, they made the SoA
+// one-step fit slower: benchmarks/lab_notes.md).
 template <typename L, bool kContiguous>
 [[gnu::noinline]] Mat3<typename L::V> gather_block(const typename L::Scalar* data, const Layout& layout, int64_t first,
                                                    int count) {

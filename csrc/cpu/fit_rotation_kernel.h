@@ -29,13 +29,12 @@ constexpr int64_t kGrainSize = 2048;
 
 // Matrices fitted together, so that the lanes saved between passes stay in
 // cache; and the Cayley steps of one pass in converged mode, after which
-// unfinished lanes are regrouped into full blocks. Most matrices converge in
-// 3 (float) or 4 (double) steps: 4 leaves ~3% (float) and ~7% (double) of the
-// lanes to regroup, while 3 costs more in saving, restoring and finishing
-// lanes than it saves in idle steps (measured: 2-6; cold fits, AVX-512, 1e5
-// matrices, float32 uniform 3: 27.2, 4: 24.4, 5: 25.1 ns/matrix; float64
-// Gaussian 3: 72, 4: 51.0, 5: 51.8 -- also with the lanes saved by compress
-// instructions instead of per-lane copies, 3 stayed slower).
+// unfinished lanes are regrouped into full blocks. Fewer steps per pass leave
+// more lanes to save, restore and finish; more leave blocks stepping for a few
+// lanes. 4 timed fastest of 2 to 6 on cold fits in both dtypes, also against 3
+// with the lanes saved by compress instructions instead of per-lane copies
+// (benchmarks/lab_notes.md: measured before the cold start's first step was
+// exact, and not since).
 constexpr int64_t kSubChunk = 1024;
 constexpr int64_t kStepsPerPass = 4;
 
@@ -131,8 +130,7 @@ inline void store_diagnostics(const kernel::LaneState<L>& s, int lane, const Bat
 // Fits matrices [begin, end); returns how many had a bad warm start.
 // kOneStep: max_iter = 1, through kernel::advance_one_step (a code path of its
 // own, so that the block's state stays in registers from the loads to the
-// stores; measured on AVX2 in cache, contiguous one-step: float32 39.5 -> 36.0
-// ns/matrix, float64 82 -> 77).
+// stores; it timed faster than advance's loop: benchmarks/lab_notes.md).
 template <typename L, BlockPath kPath, bool kOneStep, bool kCold>
 int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end) {
   using T = typename L::Scalar;
@@ -211,8 +209,8 @@ int64_t fit_batch(const BatchArgs<typename L::Scalar>& args) {
       full_block_path(L::width, {&args.m_layout, &args.out_layout, args.init == nullptr ? nullptr : &args.init_layout});
   std::atomic<int64_t> bad_inits{0};
   // One instantiation per case, so that each loop is compiled for its own
-  // (measured: warm one-step fits took 2.4 (AVX-512) and 4.1 (AVX2) more
-  // instructions per matrix in one loop with the cold start's code).
+  // (in one loop with the cold start's code, warm one-step fits executed more
+  // instructions per matrix: benchmarks/lab_notes.md).
   const auto run = [&](auto one_step, auto cold) {
     parallel_blocks(args.n, L::width, kGrainSize, [&](int64_t begin, int64_t end) {
       const FlushToZero flush_to_zero;  // in the thread that runs the range

@@ -7,10 +7,10 @@
 // Why: matrices recorded from solvers (ARAP covariances with entries 1e-21 of
 // the largest, warm starts with entries of 1e-33, steps of 1e-15 near
 // convergence) make subnormal products inside a Cayley step, and x86 cores
-// may compute each through a microcode assist: on one host the one-step
-// update on the paper-scale ARAP recording took 27 ns per matrix instead of 9
-// (float32, 1 thread, benchmarks/authors_kernel.py; on another of the same
-// kind the assists cost little: benchmarks/README.md).
+// may compute each through a microcode assist: on one host that made the
+// one-step update on the paper-scale ARAP recording several times slower
+// (benchmarks/authors_kernel.py; on another of the same kind the assists cost
+// little: benchmarks/README.md, benchmarks/lab_notes.md).
 //
 // Why it is safe: the fit works on M scaled to max |entry| 1 (unit_scale.h,
 // computed so that no entry it keeps is flushed) and on rotations, so every

@@ -1,17 +1,16 @@
 // Transparent huge pages for the kernels' fresh outputs.
 //
-// A result the operator allocates is written once, densely, by the kernel
-// right after: on 4 KiB pages, its first touch takes one page fault per
-// 4 KiB, which on this project's VM cost a (1e6, 3, 3) float32 result about
-// 11 ns per matrix, twice a copy_ of M (torch.empty_like(M).fill_ 17 ns
-// against copy_ 6; the one-step update with a new output 53 ns against 35
-// with out=). Asking the kernel for transparent huge pages on the part of the
-// buffer that spans whole 2 MiB pages takes one fault per 2 MiB instead; the
-// same advice as PyTorch's opt-in THP_MEM_ALLOC_ENABLE, which gives it to every
-// large allocation. Here it is given only to buffers the kernel is about to
-// fill, so no huge page is left partly unused. It changes no value: where the
-// system does not take the advice (THP disabled, other kernels, other
-// allocators' memory) nothing changes at all.
+// A result the operator allocates is written once, densely, by the kernel right
+// after: on 4 KiB pages, its first touch takes one page fault per 4 KiB, which
+// for a large result can cost more than a copy_ of M, and made a one-step
+// update with a new output markedly slower than with out=
+// (benchmarks/lab_notes.md). Asking the kernel for transparent huge pages on
+// the part of the buffer that spans whole 2 MiB pages takes one fault per 2 MiB
+// instead; the same advice as PyTorch's opt-in THP_MEM_ALLOC_ENABLE, which
+// gives it to every large allocation. Here it is given only to buffers the
+// kernel is about to fill, so no huge page is left partly unused. It changes no
+// value: where the system does not take the advice (THP disabled, other
+// kernels, other allocators' memory) nothing changes at all.
 #pragma once
 
 #include <ATen/core/Tensor.h>

@@ -4,8 +4,8 @@
 // (kernel/rotation_gradient.h) for X[i] = dL/dR (backward) or dM (forward
 // mode). One pass over the batch in SIMD blocks (paired blocks in the AVX
 // objects: kernel_object.h). Compute bound, not memory bound, where the batch
-// is in cache: ~8 ns per float32 matrix with AVX-512, against ~1 ns to read
-// and write its 144 bytes.
+// is in cache: its arithmetic takes several times as long as reading and
+// writing a matrix's 144 bytes (benchmarks/lab_notes.md).
 #pragma once
 
 #include <algorithm>

@@ -18,10 +18,10 @@
 // instead: the two halves of a vector hold matrices j and j + W/2, and the
 // transposes are in-lane unpacks and shuffles (float: 4 x 4 transposes of
 // entries 0-3, 4-7 and 5-8, whose overlap is rewritten with the same values;
-// double: pairs of entries). Measured on Zen 1 (AVX2), in cache, against the
-// stride-3 scheme: the warm-start check of contiguous float32 data 15.8 -> 8.3
-// ns/matrix (plain loads of SoA data: 7.3); one-step fits float32 54 -> 41,
-// float64 112 -> 80; converged from the warm start 79 -> 66 and 176 -> 142.
+// double: pairs of entries). On Zen 1, against the stride-3 scheme, this made
+// the warm-start check of contiguous data nearly as fast as plain loads of
+// SoA data, and the one-step and converged fits faster in both dtypes
+// (benchmarks/lab_notes.md).
 #pragma once
 
 #include <ATen/cpu/vec/vec.h>

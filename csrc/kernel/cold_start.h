@@ -10,10 +10,10 @@
 // tr(P^T A) = sum_i s_i A(i, pi(i)), takes a few additions. For each of the 6
 // permutations pi, the best signs are those of the entries A(i, pi(i)), unless
 // their product has the wrong sign for det +1: then the smallest entry's sign
-// flips. (Measured, cold converged fits, float32: Gaussian M 3.39 -> 3.15 mean
-// steps, 5.9% -> 2.2% of matrices needing 5 or more, against the 12
-// rotations of the tetrahedral group used before; uniform [0, 1] M 3.20 ->
-// 3.18.) torchrot/generic/cold_start.py's _best_start_rotation mirrors this.
+// flips. (Against the 12 rotations of the tetrahedral group used before, the
+// 24 took fewer steps to converge, and left fewer matrices needing many:
+// benchmarks/lab_notes.md.) torchrot/generic/cold_start.py's
+// _best_start_rotation mirrors this.
 #pragma once
 
 #include "lanes.h"

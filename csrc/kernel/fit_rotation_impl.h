@@ -178,12 +178,10 @@ TORCHROT_INLINE typename L::Mask take_step(LaneState<L>& s, const CayleyStep<typ
 
 // Takes up to `budget` Cayley steps on the running lanes, the first with c =
 // *first_estimate with kFirstEstimate (a cold start's maximal objective: a
-// function of its own, so that warm fits run the same code as before, measured:
-// AVX2 warm converged 197.2 -> 195.2 instructions per matrix). One function per
-// lane type: GCC's clone specialised to one call site (IPA constant
-// propagation) and its inlining choices around it ran the AVX2 fits slower
-// (measured in cache, float32: converged warm 87 -> 83.5 ns/matrix and
-// one-step 62 -> 58 without the clone).
+// function of its own, so that warm fits run the same code as before, with no
+// more instructions per matrix). One function per lane type: GCC's clone
+// specialised to one call site (IPA constant propagation) and its inlining
+// choices around it ran the AVX2 fits slower (benchmarks/lab_notes.md).
 template <typename L, bool kFirstEstimate = false>
 [[gnu::noinline, gnu::noclone]] inline void advance(LaneState<L>& s, const FitOptions& options, int64_t budget,
                                                     const typename L::V* first_estimate = nullptr) {

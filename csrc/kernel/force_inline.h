@@ -5,7 +5,7 @@
 // decides per translation unit from size budgets, so code added anywhere in a
 // kernel object could move one of them out of line, its 3x3 matrices then
 // passed through memory: adding the one-step path did that to transpose_times,
-// times and begin_fit and made every AVX2 fit 10-25% slower (measured).
+// times and begin_fit and made every AVX2 fit slower (benchmarks/lab_notes.md).
 #pragma once
 
 #if defined(__GNUC__) || defined(__clang__)

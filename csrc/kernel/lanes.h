@@ -80,7 +80,8 @@ struct VectorMasks {
     if constexpr (kGenericVectorized) {
       // Bitwise: the generic blendv tests each lane's mask with a branch,
       // mispredicted half the time on data-dependent masks (the cold start's
-      // choice cost x86's default kernel ~25% of a cold fit, measured).
+      // choice made x86's default kernel's cold fits markedly slower:
+      // benchmarks/lab_notes.md).
       return if_false ^ ((if_false ^ if_true) & m);
     } else {
       return V::blendv(if_false, if_true, m);
@@ -106,8 +107,8 @@ struct VectorMasks {
 #if defined(CPU_CAPABILITY_AVX512)
 // AVX-512 compares write a mask register (one bit per lane) and its blends
 // read one. Vectorized<T> returns compares as vectors, so every compare cost
-// a vpmovm2d and every select a vpcmpeqd back, and mask logic ran on vectors:
-// ~100 of the ~1,000 instructions of a one-step block. Here a mask stays a
+// a vpmovm2d and every select a vpcmpeqd back, and mask logic ran on vectors
+// (counted: benchmarks/lab_notes.md). Here a mask stays a
 // __mmask16 / __mmask8, with the same predicates as Vectorized's operators
 // (ordered, quiet), so every value is the same bit for bit.
 template <typename T>
@@ -290,9 +291,9 @@ TORCHROT_INLINE Pair<W> mul_add(const Pair<W>& a, const Pair<W>& b, const Pair<W
 
 // Two blocks of Base as one of twice the width. A Cayley step is one long
 // chain of dependent operations (S, the estimate's square root, Cramer's rule,
-// a division, the Cayley map, R Q: ~120 cycles of latency on Zen 4 against
-// ~80 of throughput), so one block leaves the floating-point units idle; two
-// independent halves fill them.
+// a division, the Cayley map, R Q), whose latency exceeds the time its
+// operations need on the floating-point units (benchmarks/lab_notes.md), so
+// one block leaves them idle; two independent halves fill them.
 template <typename Base>
 struct PairedLanes {
   using Scalar = typename Base::Scalar;

@@ -3,9 +3,8 @@
 //
 // Why. A Cayley step is mostly sums of products (S = R^T A, Cramer's rule,
 // the Cayley map, R Q, the Newton-Schulz clean-up): fused, they cost one
-// instruction instead of two and round once instead of twice. Measured on
-// Zen 4 (AVX-512, float32, 1 thread, recorded ARAP data, out=): one-step 11.8
-// -> 10.3-10.7 ns/matrix, converged warm 19.1 -> 17.2.
+// instruction instead of two and round once instead of twice, and the fits
+// ran faster (benchmarks/lab_notes.md).
 //
 // Where it is fused. Results are bit-identical across kernel objects only if
 // each object rounds the same way, so the choice is per type, never left to
@@ -17,9 +16,10 @@
 //  * at::vec::Vectorized<T>: at::vec::fmadd, which ATen implements with the
 //    fused instruction for AVX2, AVX-512 and NEON (aarch64's default object).
 //    For ATen's generic Vectorized (x86-64's default object, for CPUs without
-//    AVX2 and FMA; kGenericVectorized) it is a * b + c, two roundings: emulating fma there would cost tens of
-//    nanoseconds per operation (glibc's software fmaf: 22 ns, fma: 98 ns on
-//    Zen 4), slower than an SVD. That object is therefore the one kernel whose
+//    AVX2 and FMA; kGenericVectorized) it is a * b + c, two roundings:
+//    emulating fma there (glibc's software fmaf and fma, without the
+//    instruction) would make a fit slower than an SVD
+//    (benchmarks/lab_notes.md). That object is therefore the one kernel whose
 //    results differ from the scalar kernel's, by rounding (see
 //    kFusedMultiplyAdd and tests/test_isa_bit_identity.py); it meets the same accuracy
 //    criteria and is bit-identical across its own batch sizes, layouts and

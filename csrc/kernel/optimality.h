@@ -75,9 +75,9 @@ TORCHROT_INLINE V determinant(const Mat3<V>& R) {
 // where it is finite but not a rotation (|R0^T R0 - I|_F >=
 // limits::kInitTolerance or det R0 <= 0), and its squared deviation for the
 // clean-up. (Not its Gram matrix, which only the rare clean-up needs: kept
-// here, GCC stored its six vectors to the stack up to four times per block,
-// dead stores: the validation pass of out= calls took 10.1 -> 8.8
-// instructions per matrix without them, SoA views, AVX-512.)
+// here, GCC stored its six vectors to the stack, dead stores that the
+// validation pass of out= calls executed: benchmarks/lab_notes.md, "Fewer
+// instructions".)
 template <typename L>
 struct WarmStartCheck {
   typename L::Mask finite, bad;

@@ -1,7 +1,6 @@
 #include "layout.h"
 
 #include <ATen/ExpandUtils.h>
-#include <ATen/TensorUtils.h>
 #include <ATen/ops/empty.h>
 #include <ATen/ops/empty_strided.h>
 
@@ -9,6 +8,7 @@
 #include <vector>
 
 #include "../cpu/huge_pages.h"
+#include "../torch_internals.h"
 
 namespace torchrot {
 namespace ops {
@@ -16,7 +16,7 @@ namespace ops {
 std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes, at::IntArrayRef strides, int64_t n) {
   MatrixBatch view;
   view.data = t.data_ptr();
-  if (const auto flat = at::detail::computeStride(sizes, strides, at::DimVector{n, 3, 3})) {
+  if (const auto flat = torch_internals::view_strides(sizes, strides, at::DimVector{n, 3, 3})) {
     for (int d = 0; d < 3; ++d) view.layout.stride[d] = (*flat)[d];
     return view;
   }
@@ -24,7 +24,7 @@ std::optional<MatrixBatch> batch_view(const at::Tensor& t, at::IntArrayRef sizes
   for (int64_t split = 1; split < batch_dims; ++split) {
     int64_t tile = 1;
     for (int64_t d = split; d < batch_dims; ++d) tile *= sizes[d];
-    const auto tiled = at::detail::computeStride(sizes, strides, at::DimVector{n / tile, tile, 3, 3});
+    const auto tiled = torch_internals::view_strides(sizes, strides, at::DimVector{n / tile, tile, 3, 3});
     if (!tiled.has_value()) continue;
     view.layout.tile = tile;
     view.layout.tile_stride = (*tiled)[0];

@@ -86,7 +86,8 @@ def _repeat(step, st, steps, unroll=True):
     A = st["A"]
     # The lane flags travel through the loop as int32 0/1: inductor's CPU code
     # loads and stores bool buffers byte by byte (a branch per lane), which
-    # made a step about 4x slower; int32 lanes load and store as vectors.
+    # made a step several times slower (benchmarks/lab_notes.md); int32 lanes
+    # load and store as vectors.
     flags = {k for k in _LANE_KEYS if st[k].dtype == torch.bool}
     pack = lambda s: (*s["R"], *(s[k].to(_INT) if k in flags else s[k] for k in _LANE_KEYS))
 

@@ -54,9 +54,10 @@ def _components(X, n):
         # kernels that read them load contiguous vectors. Inlined instead,
         # each read is a stride-9 load of X, and inductor's CPU code then runs
         # the whole consuming kernel (normalisation and cold start) one lane at
-        # a time: ~70 ns per matrix instead of ~40 (benchmarks/generic_path.py).
-        # Not in float64: there inductor's vector code (two AVX2 registers per
-        # value) ran slower than its scalar loop (one-step fit 387 vs 133 ns).
+        # a time, markedly slower (benchmarks/generic_path.py times it; the
+        # figures: benchmarks/lab_notes.md). Not in float64: there inductor's
+        # vector code (two AVX2 registers per value) ran slower than its scalar
+        # loop (benchmarks/lab_notes.md).
         # Not on accelerators: nothing measured there.
         flat = flat.as_strided((9, n), (n, 1))
     return list(flat.unbind(0))

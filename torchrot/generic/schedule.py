@@ -56,9 +56,8 @@ FULL_STEPS = {torch.float32: 4, torch.float64: 5}
 #: maximal objective) and the second confirms, so uniform and Gaussian lanes
 #: take 2 steps (N = 1e5: 34 float32 uniform lanes and 15 Gaussian take 3 or
 #: 4, no float64 lane more than 2); the few others finish in the buffer.
-#: Measured against 4 whole-batch steps (uniform, N = 1e5, CPU, min of 9,
-#: two alternations): float32 converged 771-929 -> 645 ns per matrix eagerly,
-#: 201-253 -> 193-213 compiled; float64 (no third steps) unchanged.
+#: Against 4 whole-batch steps, float32 converged fits ran faster, eagerly and
+#: compiled, and float64 (no third steps) as fast (benchmarks/lab_notes.md).
 COLD_FULL_STEPS = 2
 FULL_STEPS_MAX_ITER = 8
 #: Compiled, the straggler buffer holds 1/STRAGGLER_DIVISOR of the batch (at
@@ -136,9 +135,8 @@ def fit_soa(A, R, running, variant, max_iter, eps, objective=None):
     if cold:  # every lane's first step (full >= 1)
         st = _step(st, variant, converge, cap, eps, objective)
     # Compiled, steps unrolled after the exact first step fuse with it and
-    # made the fit slower (measured, float32 uniform, N = 1e5, CPU: converged
-    # 241 -> 311 ns per matrix with one step unrolled, 540 with two), so
-    # there they stay a while_loop.
+    # made the fit slower, the more so the more steps (benchmarks/lab_notes.md),
+    # so there they stay a while_loop.
     st = _repeat(lambda s: _step(s, variant, converge, cap, eps), st, full - 1 if cold else full,
                  unroll=not cold)
     rest = budget - full
