@@ -53,7 +53,7 @@ COLD_1, COLD_2 = (f"torchrot, max_iter={k}" for k in (1, 2))
 
 
 # Matrices whose inputs and output stay in cache (3 x 590 KB in float32, within
-# this VM's last-level cache) and whose per-call cost (~3 us) is small against
+# a last-level cache of a few MB) and whose per-call cost (~3 us) is small against
 # the batch's: their timings are the computation alone.
 CACHED_N = 16384
 

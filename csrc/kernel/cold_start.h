@@ -12,8 +12,8 @@
 // their product has the wrong sign for det +1: then the smallest entry's sign
 // flips. (Against the 12 rotations of the tetrahedral group used before, the
 // 24 took fewer steps to converge, and left fewer matrices needing many:
-// benchmarks/lab_notes.md.) torchrot/generic/cold_start.py's
-// _best_start_rotation mirrors this.
+// benchmarks/lab_notes.md.) torchrot/generic/cold_start.py's and
+// torchrot/triton/cold_start.py's best_start_rotation mirror this.
 #pragma once
 
 #include "lanes.h"

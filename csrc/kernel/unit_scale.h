@@ -1,8 +1,8 @@
 // Scaling a matrix to max |entry| 1, exactly where it matters: the maximiser
 // of tr(R^T M) is unchanged, and no product in a Cayley step or in the
 // derivative can over- or underflow. Shared by the fit (begin_fit) and the
-// derivative (rotation_tangent); torchrot/generic/fit_rotation_impl.py's
-// _normalized mirrors it.
+// derivative (rotation_tangent); torchrot/generic/unit_scale.py and
+// torchrot/triton/unit_scale.py mirror it.
 #pragma once
 
 #include <cmath>

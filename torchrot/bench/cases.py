@@ -49,10 +49,9 @@ def run_case(part: str, data: str, M: Tensor, init: Tensor, threads: int, method
 
     The copy (key ``"copy"``) is timed interleaved: one sample after each
     other method (interleaved_seconds), its row the median of those samples,
-    so that it meets the caches as the fits do. Timed back to back, it would
-    run within this VM's 32 MB last-level cache whatever the methods around
-    it leave there (measured, N = 1e5 float32: back to back 0.83-1.03 ns per
-    matrix; interleaved 0.85-4.4, depending on the method before it)."""
+    so that it meets the caches as the fits do. Timed back to back, a small
+    batch's copy would run within the last-level cache whatever the methods
+    around it leave there (benchmarks/lab_notes.md)."""
     load_before = load_average()
     n, dtype = M.shape[0], M.dtype
     warm = data in WARM_DATA if warm is None else warm

@@ -26,8 +26,8 @@ from torchrot.bench.workloads import registration_rows, rotation_layer, single_m
 
 __all__ = ["FULL_RUN_MINUTES", "bench", "main", "parser"]
 
-# Wall time of the paper-scale run (--full) on this project's 2-core VM:
-# benchmarks/run_full_suite.py took 4,972 s at 07da00b.
+#: The paper-scale run's (--full) wall time on 2 cores, as --help states it
+#: (its measurement: benchmarks/lab_notes.md).
 FULL_RUN_MINUTES = 80
 
 
