@@ -48,3 +48,19 @@ def test_every_picture_has_its_run():
             "fig7_energy_time": "apps.json", "train_rotation_regression": "train_rotation_regression.json"}
     for picture in folder.glob("*.png"):
         assert picture.stem in runs and (folder / runs[picture.stem]).exists(), picture.name
+
+
+def _text_block(markdown: str) -> str:
+    block = re.search(r"```text\n(.*?)```", markdown, re.S)
+    assert block, "no ```text block"
+    return block.group(1)
+
+
+def test_readme_quotes_the_committed_summary():
+    """The README's headline is the committed run's summary
+    (benchmarks/results/summary.md, written by the main job), verbatim, with
+    its scaling plot."""
+    summary = _text_block((ROOT / "benchmarks" / "results" / "summary.md").read_text())
+    readme = (ROOT / "README.md").read_text()
+    assert summary in readme, "README.md does not quote benchmarks/results/summary.md's summary as it stands"
+    assert "](benchmarks/results/bench_scaling.png)" in readme

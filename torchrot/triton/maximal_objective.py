@@ -26,15 +26,8 @@ def maximal_objective(A, lower, tol, MAX_STEPS: tl.constexpr):
     system = cayley_step(A, constant(t, 0.0))  # H for c = 0 is T: its step gives det T and adj(T) m
     p0 = mul_add(t, system[3], -dot3(m[0], system[0], m[1], system[1], m[2], system[2]))  # det K
     norm2 = constant(t, 0.0)
-    norm2 = mul_add(A[0], A[0], norm2)
-    norm2 = mul_add(A[1], A[1], norm2)
-    norm2 = mul_add(A[2], A[2], norm2)
-    norm2 = mul_add(A[3], A[3], norm2)
-    norm2 = mul_add(A[4], A[4], norm2)
-    norm2 = mul_add(A[5], A[5], norm2)
-    norm2 = mul_add(A[6], A[6], norm2)
-    norm2 = mul_add(A[7], A[7], norm2)
-    norm2 = mul_add(A[8], A[8], norm2)
+    for k in tl.static_range(9):
+        norm2 = mul_add(A[k], A[k], norm2)
     p2 = -2.0 * norm2
     p1 = -8.0 * determinant(A)
     x = sqrt(3.0 * norm2)

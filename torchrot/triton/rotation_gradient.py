@@ -53,15 +53,8 @@ def rotation_tangent(X, R, M, damping, TINY: tl.constexpr, LIFT: tl.constexpr, H
     zero = max_abs == 0.0
     A, lift, inv_max = unit_scale(M, max_abs, TINY, LIFT)
     frob2 = constant(max_abs, 0.0)
-    frob2 = mul_add(A[0], A[0], frob2)
-    frob2 = mul_add(A[1], A[1], frob2)
-    frob2 = mul_add(A[2], A[2], frob2)
-    frob2 = mul_add(A[3], A[3], frob2)
-    frob2 = mul_add(A[4], A[4], frob2)
-    frob2 = mul_add(A[5], A[5], frob2)
-    frob2 = mul_add(A[6], A[6], frob2)
-    frob2 = mul_add(A[7], A[7], frob2)
-    frob2 = mul_add(A[8], A[8], frob2)
+    for k in tl.static_range(9):
+        frob2 = mul_add(A[k], A[k], frob2)
     frob = tl.where(zero, 1.0, sqrt(frob2))  # |A|_F in [1, 3]
     S = transpose_times(R, A)
     inv_frob = div(constant(frob, 1.0), frob)
