@@ -8,6 +8,7 @@ of test modules are in its own module (tests/isa_helpers.py for tests/test_isa_*
 from __future__ import annotations
 
 import functools
+import importlib.util
 
 import pytest
 import torch
@@ -16,6 +17,16 @@ import torchrot  # noqa: F401  (registers torch.ops.torchrot.*)
 from torchrot._constants import VARIANTS
 from torchrot.testing import CRITERIA, dtype_id, make_matrices, rotation_errors
 from torchrot.testing import cpu_kernel as forced_kernel
+from torchrot.testing.triton_interpreter import triton_interpreter
+
+# The tests of the Triton kernels run them under Triton's interpreter (torchrot.testing.triton_kernel), which
+# must be on where Triton is first imported: Triton's own library functions (tl.max, tl.zeros, ...) are
+# interpreted or compiled then, and some test modules import torch._dynamo, which imports Triton, as they are
+# collected. Without a CUDA or XPU device nothing in this process can run Triton compiled: Triton is imported
+# here, interpreted (tests/test_triton_compile.py compiles for GPUs in a child process).
+if importlib.util.find_spec("triton") is not None and not (torch.cuda.is_available() or torch.xpu.is_available()):
+    with triton_interpreter():
+        import triton  # noqa: F401
 
 # The helper modules shared by several test modules assert too: pytest rewrites their asserts as it does the
 # tests' (values in the failure messages).

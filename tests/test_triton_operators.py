@@ -113,3 +113,17 @@ def test_devices_run_triton_where_it_has_a_backend(monkeypatch):
     for name in _device_kernels.OPERATOR_NAMES:
         for key in ("CUDA", "XPU", "MPS"):
             assert torch._C._dispatch_has_kernel_for_dispatch_key(f"torchrot::{name}", key)
+
+
+def test_interpreter_fma_rounds_once():
+    """torchrot.testing.triton_interpreter's use of Triton's private
+    interpreter classes, on the installed Triton: the probe of tl.fma's
+    rounding answers, and under fma_rounded_once it rounds once (Triton 3.6's
+    interpreter rounds twice; 3.9's once)."""
+    from triton.runtime.interpreter import interpreter_builder
+
+    from torchrot.testing.triton_interpreter import fma_rounded_once, fma_rounds_once
+
+    assert isinstance(fma_rounds_once(interpreter_builder), bool)
+    with fma_rounded_once():
+        assert fma_rounds_once(interpreter_builder)

@@ -258,7 +258,8 @@ def bench(args: argparse.Namespace, log=print) -> int:
     if run_apps or (run_micro and set(plan.methods_data) & set(data.RECORDED)):
         log(f"data set cache: {cache}{os.sep} ({_folder_size(cache) / 1e6:.0f} MB; delete it to re-record)")
     log("")
-    summary = headline(rows, layer, registration, apps_rows, output, torch.ops.torchrot.cpu_kernel())
+    # (The folder as given: the summary file names it, and the README quotes that file.)
+    summary = headline(rows, layer, registration, apps_rows, args.output or None, torch.ops.torchrot.cpu_kernel())
     for line in summary:
         log(line)
     if output:

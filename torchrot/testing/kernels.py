@@ -4,15 +4,17 @@ every path on any machine."""
 from __future__ import annotations
 
 import contextlib
-import importlib.util
-import os
-import sys
 import warnings
 from collections.abc import Iterator
 
 import torch
 
 from torchrot._constants import CPU_KERNELS
+from torchrot.testing.triton_interpreter import (
+    fma_rounded_once,
+    triton_interpreter,
+    triton_interpreter_unavailable,
+)
 
 __all__ = ['CPU_KERNELS', 'rounds_like_scalar', 'rounding_reference', 'cpu_kernel', 'available_cpu_kernels',
            'generic_kernel', 'triton_kernel', 'triton_interpreter_unavailable']
@@ -139,47 +141,6 @@ def generic_kernel() -> Iterator[None]:
         yield
 
 
-_TRITON_MODULE = "torchrot.triton.mul_add"  # imported by every Triton kernel of torchrot
-
-
-def triton_interpreter_unavailable() -> str | None:
-    """Why :func:`triton_kernel` cannot run in this process (a str), or None:
-    Triton is not installed, or torchrot's Triton kernels were already
-    imported compiled (for a GPU) in this process.
-
-    Examples:
-        >>> from torchrot.testing import triton_interpreter_unavailable
-        >>> isinstance(triton_interpreter_unavailable(), (str, type(None)))
-        True
-    """
-    if importlib.util.find_spec("triton") is None:
-        return "Triton is not installed (pip install triton; no wheel for this platform)"
-    module = sys.modules.get(_TRITON_MODULE)
-    if module is not None:
-        from triton.runtime.interpreter import InterpretedFunction
-
-        if not isinstance(module.mul_add, InterpretedFunction):
-            return ("torchrot's Triton kernels were imported compiled in this process; run the interpreter "
-                    "in another process, or with TRITON_INTERPRET=1 set before they are imported")
-    return None
-
-
-@contextlib.contextmanager
-def _triton_interpreter() -> Iterator[None]:
-    """TRITON_INTERPRET=1 while it lasts (Triton reads it where a
-    @triton.jit function is decorated, and where a launch first imports its
-    language modules); the previous value afterwards."""
-    previous = os.environ.get("TRITON_INTERPRET")
-    os.environ["TRITON_INTERPRET"] = "1"
-    try:
-        yield
-    finally:
-        if previous is None:
-            del os.environ["TRITON_INTERPRET"]
-        else:
-            os.environ["TRITON_INTERPRET"] = previous
-
-
 @contextlib.contextmanager
 def triton_kernel() -> Iterator[None]:
     """``with triton_kernel(): ...`` runs ``torch.ops.torchrot.*`` on CPU
@@ -187,9 +148,11 @@ def triton_kernel() -> Iterator[None]:
     under Triton's interpreter, instead of the C++ ones, so that the same
     tests check the accelerator kernels on any machine with Triton
     installed. The interpreter runs each block with NumPy: slow, for small
-    batches. Process-wide while it lasts, like :func:`generic_kernel`; it
-    imports the Triton kernels interpreted, so a process that uses it cannot
-    also run them compiled on a GPU (:func:`triton_interpreter_unavailable`).
+    batches; where it would round ``tl.fma`` twice (Triton 3.6), the C
+    library's fma rounds it once, as a GPU does. Process-wide while it lasts,
+    like :func:`generic_kernel`; it imports the Triton kernels interpreted,
+    so a process that uses it cannot also run them compiled on a GPU
+    (:func:`triton_interpreter_unavailable`).
 
     Raises:
         RuntimeError: :func:`triton_interpreter_unavailable` gives a reason.
@@ -209,7 +172,7 @@ def triton_kernel() -> Iterator[None]:
 
     # np.errstate: the interpreter computes with NumPy, which warns where the
     # kernels divide by zero or meet NaN (as they do, silently, on a GPU).
-    with _triton_interpreter(), np.errstate(all="ignore"):
+    with triton_interpreter(), np.errstate(all="ignore"), fma_rounded_once():
         from torchrot.triton.operators import TRITON_KERNELS
 
         with _cpu_kernels_shadowed_by(TRITON_KERNELS):
