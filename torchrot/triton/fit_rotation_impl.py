@@ -16,6 +16,8 @@ Horn/Jacobi fallback (converged mode, rare) as they are, and the driver
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 import triton
@@ -55,12 +57,14 @@ __all__ = ["tolerances", "constexprs_for", "begin_fit", "can_take", "take_step",
            "finish"]
 
 
+@functools.cache
 def tolerances(compute: torch.dtype) -> dict:
     """Tolerances<T> for compute dtype ``compute`` (float32 or float64), as
     the kernels' constexpr arguments: each threshold computed in that dtype
     as the C++ kernel computes it (e.g. kInitTolerance squared in float), so
     that every comparison is the same. From torchrot._constants (csrc/limits.h)
-    and torch.finfo."""
+    and torch.finfo; computed once per dtype (every launch reads it): do not
+    modify the returned dict."""
     T = np.float32 if compute == torch.float32 else np.float64
     finfo = torch.finfo(compute)
     eps, tiny = T(finfo.eps), T(finfo.tiny)
