@@ -21,6 +21,7 @@ torch.ops.torchrot.cpu_kernel()
 from torchrot import _autograd, _constants, _device_kernels, _fake  # noqa: E402, F401, I001
 from torchrot._constants import FitStatus  # noqa: E402
 from torchrot.fitting import FitInfo, fit_rotation, fit_rotation_info  # noqa: E402
+from torchrot.orthogonal import fit_orthogonal  # noqa: E402
 from torchrot.reference import fit_rotation_reference, rotation_svd  # noqa: E402
 from torchrot.registration import RigidTransform, rigid_registration  # noqa: E402
 from torchrot import nn  # noqa: E402
@@ -37,6 +38,7 @@ __all__ = [
     "DEFAULT_GRADIENT_EPS",
     "FitInfo",
     "FitStatus",
+    "fit_orthogonal",
     "fit_rotation",
     "fit_rotation_info",
     "fit_rotation_reference",
