@@ -65,6 +65,11 @@ inline constexpr Message kOutInference{
     "OUT_INFERENCE",
     "{op}: out is an inference tensor, which can only be written in place inside torch.inference_mode(): pass a "
     "normal tensor (e.g. a clone), or call it in inference mode"};
+// fit_rotation_out on a DTensor (torchrot/_sharding.py): out is written in place, so it keeps its placements.
+inline constexpr Message kOutPlacement{
+    "OUT_PLACEMENT",
+    "{op}: on a DTensor, out must be replicated or sharded along a batch dimension, the same on every mesh "
+    "dimension (it is written in place and keeps its placements), got {placements}"};
 inline constexpr Message kGradientEpsType{"GRADIENT_EPS_TYPE", "{op}: gradient_eps must be a float >= 0, got {value}"};
 inline constexpr Message kGradientEpsRange{
     "GRADIENT_EPS_RANGE", "{op}: gradient_eps must be a finite number >= 0 and <= {max_gradient_eps}, got {value}"};
@@ -74,10 +79,10 @@ inline constexpr Message kBackwardBroadcast{"BACKWARD_BROADCAST",
 inline constexpr Message kCpuKernel{"CPU_KERNEL", "{what} must be one of {cpu_kernels}; got '{value}'"};
 
 inline constexpr Message kAll[] = {
-    kNotATensor,   kMatrixShape,       kMatrixDtype,  kDeviceLike,    kDtypeLike,        kMaxIterType,
-    kMaxIterRange, kVariantType,       kVariantValue, kInitBroadcast, kInitNotRotations, kInitNotOrthogonal,
-    kOutShape,     kOutOverlap,        kOutAutograd,  kOutInference,  kGradientEpsType,  kGradientEpsRange,
-    kGradShape,    kBackwardBroadcast, kCpuKernel,
+    kNotATensor,       kMatrixShape, kMatrixDtype,       kDeviceLike,    kDtypeLike,        kMaxIterType,
+    kMaxIterRange,     kVariantType, kVariantValue,      kInitBroadcast, kInitNotRotations, kInitNotOrthogonal,
+    kOutShape,         kOutOverlap,  kOutAutograd,       kOutInference,  kOutPlacement,     kGradientEpsType,
+    kGradientEpsRange, kGradShape,   kBackwardBroadcast, kCpuKernel,
 };
 
 // `message` with its static fields and the given ones filled in (a field

@@ -187,7 +187,9 @@ def _solve(x, y, weights, scale: bool, init, allow_reflection: bool) -> tuple[to
     x_rows = x.mT.contiguous()  # (..., 3, N)
     y_rows = y.mT.contiguous()
     if weights is None:
-        p = torch.full((x.shape[-2],), 1.0 / x.shape[-2], dtype=x.dtype, device=x.device)
+        # (x.new_full: a DTensor x makes it a replicated DTensor, which the
+        # products with x's sharded batch accept; torch.full would not mix.)
+        p = x.new_full((x.shape[-2],), 1.0 / x.shape[-2])
     else:
         p = _normalized_weights(weights)
     p_row = p.unsqueeze(-2)  # (..., 1, N)
@@ -206,7 +208,7 @@ def _solve(x, y, weights, scale: bool, init, allow_reflection: bool) -> tuple[to
         # tr(R^T M) at the maximum: the sum of M's singular values (sign-corrected for a rotation).
         s = (R * M).sum((-2, -1)) / variance_x
     else:
-        s = torch.ones(M.shape[:-2], dtype=M.dtype, device=M.device)
+        s = torch.ones_like(M[..., 0, 0])  # M's batch shape (and a DTensor M's placements)
     t = (y_mean - s[..., None, None] * _matmul(R, x_mean)).squeeze(-1)
     return R, t, s
 
