@@ -63,8 +63,8 @@ struct FitRotationAutograd : public torch::autograd::Function<FitRotationAutogra
 
   // dL/dM = R [u]x (self-adjoint map; init, max_iter, variant and
   // gradient_eps get no gradient). With create_graph the operator's own
-  // Autograd kernel records the tangent, which refuses to be differentiated
-  // again (second derivatives raise, as on every other path).
+  // Autograd kernel records the tangent, whose Python twin is differentiable
+  // in turn (torchrot/_tangent_derivative.py): second derivatives.
   static variable_list backward(AutogradContext* ctx, variable_list grads) {
     const auto saved = ctx->get_saved_variables();
     const double gradient_eps = ctx->saved_data["gradient_eps"].toDouble();
@@ -134,7 +134,7 @@ at::Tensor fit_rotation_autograd(c10::DispatchKeySet keys, const at::Tensor& M, 
 // The Autograd kernel of torchrot::fit_rotation_backward: below autograd
 // unless it may record (a torch.func transform, a tangent, a tensor requiring
 // grad: create_graph), where the Python kernel records the tangent operator
-// that refuses to be differentiated again.
+// with its own derivatives (torchrot/_autograd.py, _TangentFunction).
 at::Tensor fit_rotation_backward_autograd(c10::DispatchKeySet keys, const at::Tensor& grad, const at::Tensor& R,
                                           const at::Tensor& M, double gradient_eps) {
   static const auto python_twin =

@@ -19,6 +19,7 @@ namespace messages {
 
 constexpr const char* kOpName = "torchrot.fit_rotation";
 constexpr const char* kBackwardName = "torchrot.fit_rotation_backward";
+constexpr const char* kOrthogonalName = "torchrot.fit_orthogonal";
 
 // A message template and the key under which Python finds it.
 struct Message {
@@ -43,6 +44,12 @@ inline constexpr Message kInitNotRotations{
     "INIT_NOT_ROTATIONS",
     "{op}: init must hold rotations (|R^T R - I|_F < {init_tolerance} and det R > 0; rotations of any float dtype "
     "qualify); {bad} of {n} are not: pass rotations, or no init for a cold start"};
+// The warm starts of torchrot.fit_orthogonal (checked in Python, torchrot/orthogonal.py, before the
+// rotation fit that it runs): orthogonal matrices of either determinant.
+inline constexpr Message kInitNotOrthogonal{
+    "INIT_NOT_ORTHOGONAL",
+    "{op}: init must hold orthogonal matrices (|Q^T Q - I|_F < {init_tolerance}, det +1 or -1; orthogonal matrices "
+    "of any float dtype qualify); {bad} of {n} are not: pass orthogonal matrices, or no init for a cold start"};
 inline constexpr Message kOutShape{"OUT_SHAPE", "{op}: out must have M's shape {m_shape}, got {shape}"};
 inline constexpr Message kOutOverlap{"OUT_OVERLAP",
                                      "{op}: out must not have overlapping elements (e.g. an expanded tensor)"};
@@ -58,6 +65,11 @@ inline constexpr Message kOutInference{
     "OUT_INFERENCE",
     "{op}: out is an inference tensor, which can only be written in place inside torch.inference_mode(): pass a "
     "normal tensor (e.g. a clone), or call it in inference mode"};
+// fit_rotation_out on a DTensor (torchrot/_sharding.py): out is written in place, so it keeps its placements.
+inline constexpr Message kOutPlacement{
+    "OUT_PLACEMENT",
+    "{op}: on a DTensor, out must be replicated or sharded along a batch dimension, the same on every mesh "
+    "dimension (it is written in place and keeps its placements), got {placements}"};
 inline constexpr Message kGradientEpsType{"GRADIENT_EPS_TYPE", "{op}: gradient_eps must be a float >= 0, got {value}"};
 inline constexpr Message kGradientEpsRange{
     "GRADIENT_EPS_RANGE", "{op}: gradient_eps must be a finite number >= 0 and <= {max_gradient_eps}, got {value}"};
@@ -67,10 +79,10 @@ inline constexpr Message kBackwardBroadcast{"BACKWARD_BROADCAST",
 inline constexpr Message kCpuKernel{"CPU_KERNEL", "{what} must be one of {cpu_kernels}; got '{value}'"};
 
 inline constexpr Message kAll[] = {
-    kNotATensor,       kMatrixShape,      kMatrixDtype, kDeviceLike,        kDtypeLike,
-    kMaxIterType,      kMaxIterRange,     kVariantType, kVariantValue,      kInitBroadcast,
-    kInitNotRotations, kOutShape,         kOutOverlap,  kOutAutograd,       kOutInference,
-    kGradientEpsType,  kGradientEpsRange, kGradShape,   kBackwardBroadcast, kCpuKernel,
+    kNotATensor,       kMatrixShape, kMatrixDtype,       kDeviceLike,    kDtypeLike,        kMaxIterType,
+    kMaxIterRange,     kVariantType, kVariantValue,      kInitBroadcast, kInitNotRotations, kInitNotOrthogonal,
+    kOutShape,         kOutOverlap,  kOutAutograd,       kOutInference,  kOutPlacement,     kGradientEpsType,
+    kGradientEpsRange, kGradShape,   kBackwardBroadcast, kCpuKernel,
 };
 
 // `message` with its static fields and the given ones filled in (a field

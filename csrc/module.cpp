@@ -68,7 +68,8 @@ PyObject* messages() {
   PyObject* dict = PyDict_New();
   if (dict == nullptr) return nullptr;
   bool ok = set_item(dict, "OP_NAME", PyUnicode_FromString(kOpName)) &&
-            set_item(dict, "BACKWARD_NAME", PyUnicode_FromString(kBackwardName));
+            set_item(dict, "BACKWARD_NAME", PyUnicode_FromString(kBackwardName)) &&
+            set_item(dict, "ORTHOGONAL_NAME", PyUnicode_FromString(kOrthogonalName));
   for (const Message& message : kAll) {
     ok = ok && set_item(dict, message.key, PyUnicode_FromString(format(message).c_str()));
   }

@@ -19,9 +19,10 @@ def _svd_gradient(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     return M.grad
 
 
-def _gradient(M: torch.Tensor, G: torch.Tensor, **kwargs) -> torch.Tensor:
+def _gradient(M: torch.Tensor, G: torch.Tensor, fit=torchrot.fit_rotation, **kwargs) -> torch.Tensor:
+    """dL/dM for dL/dR = G through ``fit`` (fit_rotation, or fit_orthogonal)."""
     M = M.detach().clone().requires_grad_()
-    torchrot.fit_rotation(M, **kwargs).backward(G)
+    fit(M, **kwargs).backward(G)
     return M.grad
 
 

@@ -12,6 +12,7 @@ import importlib.util
 
 import pytest
 import torch
+from fits import FITS, Fit
 
 import torchrot  # noqa: F401  (registers torch.ops.torchrot.*)
 from torchrot._constants import VARIANTS
@@ -56,6 +57,13 @@ def dtype(request) -> torch.dtype:
     return request.param
 
 
+@pytest.fixture(params=sorted(FITS))
+def fit(request) -> Fit:
+    """The two public fits, rotation and orthogonal (tests/fits.py): a
+    contract test that takes this fixture runs on both."""
+    return FITS[request.param]
+
+
 @pytest.fixture(params=VARIANTS)
 def variant(request) -> str:
     """The three Cayley-step variants."""
@@ -80,13 +88,15 @@ def matrices():
 
 @pytest.fixture(scope="session")
 def assert_meets_criteria():
-    """``assert_meets_criteria(R, M, dtype, what="")``: every matrix of R meets
-    ``CRITERIA[dtype]`` (orthonormality, det, shortfall) for M; the message
-    names the worst matrix of each failing metric."""
+    """``assert_meets_criteria(R, M, dtype, what="", errors=rotation_errors)``:
+    every matrix of R meets ``CRITERIA[dtype]`` (orthonormality, det,
+    shortfall) for M, as ``errors`` measures them (``orthogonal_errors`` for
+    the orthogonal fit); the message names the worst matrix of each failing
+    metric."""
 
-    def check(R: torch.Tensor, M: torch.Tensor, dtype: torch.dtype, what: str = "") -> dict:
+    def check(R: torch.Tensor, M: torch.Tensor, dtype: torch.dtype, what: str = "", errors=rotation_errors) -> dict:
         assert torch.isfinite(R).all(), f"{what}: non-finite result"
-        errors = rotation_errors(R, M)
+        errors = errors(R, M)
         failures = []
         for metric, limit in CRITERIA[dtype].items():
             err = errors[metric].flatten()

@@ -1,5 +1,8 @@
 """Warm starts of torchrot.fit_rotation against the float64 SVD answer: a
-start at the answer stays, a nearby one converges to it; one step matches
+start at the answer stays, a nearby one converges to it (also for
+torchrot.fit_orthogonal, the ``fit`` fixture, on matrices of either
+determinant; a warm start of the other determinant than M's still
+converges); one step matches
 the Cayley step computed by hand from the paper's formulas; drifted starts
 are reorthonormalised; feeding R back as init does not drift.
 """
@@ -13,36 +16,71 @@ from accuracy_helpers import N_SMALL, _assert_close_to_svd
 
 import torchrot
 from torchrot.reference import cayley_rotation
-from torchrot.testing import CRITERIA, WELL_CONDITIONED, dtype_id, random_rotations, rotation_errors, rotation_svd
+from torchrot.testing import (
+    CRITERIA,
+    WELL_CONDITIONED,
+    dtype_id,
+    orthogonal_errors,
+    random_rotations,
+    rotation_errors,
+    rotation_svd,
+)
 
 # ---------------------------------------------------------------------------
 # Warm start
 # ---------------------------------------------------------------------------
 
 
+def _mixed_signs(M: torch.Tensor, fit) -> torch.Tensor:
+    """M, with every other matrix negated for the orthogonal fit (det < 0 there)."""
+    if fit.orthogonal:
+        M = M.clone()
+        M[1::2] = -M[1::2]
+    return M
+
+
 @pytest.mark.parametrize("name", WELL_CONDITIONED)
-def test_warm_start_at_answer_stays(name, dtype, variant, matrices):
+def test_warm_start_at_answer_stays(name, dtype, variant, fit, matrices):
     """init = the exact answer, one step: the result stays at the answer."""
-    M64 = matrices(name, N_SMALL, 8, torch.float64)
+    M64 = _mixed_signs(matrices(name, N_SMALL, 8, torch.float64), fit)
     M = M64.to(dtype)
-    init = rotation_svd(M.double()).to(dtype)
-    R, iterations, status = torchrot.fit_rotation_info(M, init, max_iter=1, variant=variant)
-    assert (iterations <= 1).all() and (status == 0).all()
-    _assert_close_to_svd(R, M, f"{name}/{variant}/{dtype_id(dtype)} max_iter=1 from R*")
+    init = fit.svd(M.double()).to(dtype)
+    if not fit.orthogonal:
+        R, iterations, status = torchrot.fit_rotation_info(M, init, max_iter=1, variant=variant)
+        assert (iterations <= 1).all() and (status == 0).all()
+    R = fit.fn(M, init, max_iter=1, variant=variant)
+    _assert_close_to_svd(R, M, f"{fit.name}/{name}/{variant}/{dtype_id(dtype)} max_iter=1 from R*", fit.orthogonal)
 
 
 @pytest.mark.parametrize("name", WELL_CONDITIONED)
-def test_warm_start_nearby_converges(name, dtype, variant, matrices):
+def test_warm_start_nearby_converges(name, dtype, variant, fit, matrices):
     """init a few degrees from the answer, converged mode: reaches R*."""
-    M = matrices(name, N_SMALL, 9, dtype)
+    M = _mixed_signs(matrices(name, N_SMALL, 9, dtype), fit)
     gen = torch.Generator().manual_seed(9)
-    init = (rotation_svd(M.double()) @ random_rotations(N_SMALL, gen, math.radians(5))).to(dtype)
+    init = (fit.svd(M.double()) @ random_rotations(N_SMALL, gen, math.radians(5))).to(dtype)
+    R = fit.fn(M, init, variant=variant)
+    _assert_close_to_svd(R, M, f"{fit.name}/{name}/{variant}/{dtype_id(dtype)} converged from 5 deg", fit.orthogonal)
+    if fit.orthogonal:
+        return
     R, iterations, status = torchrot.fit_rotation_info(M, init, variant=variant)
-    _assert_close_to_svd(R, M, f"{name}/{variant}/{dtype_id(dtype)} converged from 5 deg")
     # measured (1000 matrices per distribution, seed 9): at most 3.9 steps on
     # average (float64 gershgorin) and no fallback; limits leave ~15% / 5 matrices
     assert iterations.float().mean().item() <= 4.5
     assert (status == 1).float().mean().item() <= 0.005
+
+
+def test_orthogonal_warm_start_of_the_other_determinant(dtype, variant, matrices):
+    """A warm start whose determinant is not det M's (det M changed sign since
+    the previous fit) is an orthogonal start all the same: converged mode
+    reaches the polar factor, one step gives an exact orthogonal matrix."""
+    M = matrices("rot60", N_SMALL, 10, dtype)
+    init = -torchrot.reference.orthogonal_svd(M.double()).to(dtype)  # det -1, M's det > 0
+    Q = torchrot.fit_orthogonal(M, init, variant=variant)
+    _assert_close_to_svd(Q, M, f"{variant}/{dtype_id(dtype)} from the reflection", orthogonal=True)
+    Q1 = torchrot.fit_orthogonal(M, init, max_iter=1, variant=variant)
+    errors = orthogonal_errors(Q1, M)
+    assert errors["orthonormality"].max() <= CRITERIA[dtype]["orthonormality"]
+    assert (torch.linalg.det(Q1.double()) > 0).all()
 
 
 def _hand_objective_estimate(S: torch.Tensor, variant: str) -> torch.Tensor:

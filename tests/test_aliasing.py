@@ -2,7 +2,8 @@
 any layout (offset, strided, transposed, expanded, permuted batch views), is
 computed through a temporary, so the result is bit for bit the fit into a
 fresh tensor. The derivative operator's arguments may alias each other.
-Both the C++ kernel and the device-generic kernel (torchrot.testing.generic_kernel).
+Both the C++ kernel and the device-generic kernel (torchrot.testing.generic_kernel),
+for fit_rotation and fit_orthogonal (the ``fit`` fixture).
 
 Convention: R (det +1) maximises tr(R^T M); column vectors.
 """
@@ -79,12 +80,12 @@ def _case(layout: str, dtype):
 @pytest.mark.parametrize("kernel", kernel_path_params())
 @pytest.mark.parametrize("max_iter", [None, 1])
 @pytest.mark.parametrize("layout", sorted(LAYOUTS))
-def test_overlapping_out_gives_the_fresh_result(layout, max_iter, kernel, dtype):
+def test_overlapping_out_gives_the_fresh_result(layout, max_iter, kernel, dtype, fit):
     base, M, init, out = _case(layout, dtype)
     with KERNEL_PATHS[kernel]():
         # the answer: the same fit from copies of the inputs into a fresh tensor
-        expected = torchrot.fit_rotation(M.clone(), None if init is None else init.clone(), max_iter=max_iter)
-        torchrot.fit_rotation(M, init, max_iter=max_iter, out=out)
+        expected = fit.fn(M.clone(), None if init is None else init.clone(), max_iter=max_iter)
+        fit.fn(M, init, max_iter=max_iter, out=out)
     if kernel == "cpu":
         assert torch.equal(out, expected)
     else:  # batched PyTorch: rounding may depend on the operands' layout
@@ -92,36 +93,36 @@ def test_overlapping_out_gives_the_fresh_result(layout, max_iter, kernel, dtype)
 
 
 @pytest.mark.parametrize("low", [torch.float16, torch.bfloat16], ids=str)
-def test_overlapping_out_reduced_precision(low):
+def test_overlapping_out_reduced_precision(low, fit):
     base = make_matrices("gaussian", 130, 14, torch.float64).to(low)
     M, out = base[0:128:2], base[2:130:2]
-    expected = torchrot.fit_rotation(M.clone())
-    torchrot.fit_rotation(M, out=out)
+    expected = fit.fn(M.clone())
+    fit.fn(M, out=out)
     assert torch.equal(out, expected)
 
 
 @pytest.mark.parametrize("kernel", kernel_path_params())
-def test_exact_identity_is_in_place(kernel, dtype):
+def test_exact_identity_is_in_place(kernel, dtype, fit):
     """out = M and out = init (the in-place warm-start update) need no copy."""
     M = make_matrices("warm", 50, 15, torch.float64).to(dtype)
     init = rotations(50, 16, dtype)
     with KERNEL_PATHS[kernel]():
-        expected_M = torchrot.fit_rotation(M)
-        expected_init = torchrot.fit_rotation(M, init, max_iter=1)
+        expected_M = fit.fn(M)
+        expected_init = fit.fn(M, init, max_iter=1)
         M_, init_ = M.clone(), init.clone()
-        torchrot.fit_rotation(M_, out=M_)
-        torchrot.fit_rotation(M, init_, max_iter=1, out=init_)
+        fit.fn(M_, out=M_)
+        fit.fn(M, init_, max_iter=1, out=init_)
     assert torch.equal(M_, expected_M) and torch.equal(init_, expected_init)
 
 
-def test_out_from_another_storage_on_the_same_memory():
+def test_out_from_another_storage_on_the_same_memory(fit):
     """Two tensors over the same memory without sharing a storage (NumPy views)."""
     import numpy as np
 
     array = make_matrices("gaussian", 65, 17, torch.float64).numpy()
     M, out = torch.from_numpy(array[0:64]), torch.from_numpy(np.asarray(array)[1:65])
-    expected = torchrot.fit_rotation(M.clone())
-    torchrot.fit_rotation(M, out=out)
+    expected = fit.fn(M.clone())
+    fit.fn(M, out=out)
     assert torch.equal(out, expected)
 
 
@@ -137,11 +138,11 @@ def test_backward_arguments_may_alias(kernel, dtype):
             assert torch.equal(op.fit_rotation_backward(grad, R_, M_, 1e-6), expected)
 
 
-def test_failed_call_leaves_overlapping_out_untouched():
+def test_failed_call_leaves_overlapping_out_untouched(fit):
     """A bad warm start raises before anything is written, also through the temporary."""
     base = rotations(65, 19, torch.float64)
     base[40] *= 2
     before = base.clone()
     with pytest.raises(ValueError, match="1 of 64 are not"):
-        torchrot.fit_rotation(make_matrices("warm", 64, 20), base[0:64], max_iter=1, out=base[1:65])
+        fit.fn(make_matrices("warm", 64, 20), base[0:64], max_iter=1, out=base[1:65])
     assert torch.equal(base, before)

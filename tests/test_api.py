@@ -1,5 +1,6 @@
-"""API contract of torchrot.fit_rotation: shapes, broadcasting, strides, out=,
-reduced precision, thread-count determinism and argument errors."""
+"""API contract of torchrot.fit_rotation and torchrot.fit_orthogonal (the
+``fit`` fixture: tests/fits.py): shapes, broadcasting, strides, out=,
+reduced precision and argument errors."""
 from __future__ import annotations
 
 import math
@@ -9,7 +10,7 @@ import torch
 
 import torchrot
 from torchrot._constants import INIT_TOLERANCE
-from torchrot.testing import CRITERIA, make_matrices, rotation_errors, rotation_svd, rotations, tiled_view
+from torchrot.testing import CRITERIA, make_matrices, rotation_svd, rotations, tiled_view
 
 op = torch.ops.torchrot
 
@@ -28,30 +29,31 @@ BATCH_SHAPES = [(), (1,), (7,), (2, 3, 4), (0,), (2, 0), (0, 5, 1)]
 
 @pytest.mark.parametrize("batch", BATCH_SHAPES, ids=str)
 @pytest.mark.parametrize("max_iter", [None, 2])
-def test_batch_shapes(batch, dtype, max_iter):
+def test_batch_shapes(batch, dtype, max_iter, fit):
     M = _gaussian(batch, 1, dtype)
-    R = torchrot.fit_rotation(M, max_iter=max_iter)
+    R = fit.fn(M, max_iter=max_iter)
     assert R.shape == M.shape and R.dtype == dtype and R.is_contiguous()
-    flat = torchrot.fit_rotation(M.reshape(-1, 3, 3), max_iter=max_iter)
+    flat = fit.fn(M.reshape(-1, 3, 3), max_iter=max_iter)
     assert torch.equal(R.reshape(-1, 3, 3), flat)
-    info = torchrot.fit_rotation_info(M, max_iter=max_iter)
-    assert isinstance(info, torchrot.FitInfo)
-    assert torch.equal(info.R, R)
-    assert info.iterations.shape == batch and info.iterations.dtype == torch.int32
-    assert info.status.shape == batch and info.status.dtype == torch.uint8
+    if not fit.orthogonal:
+        info = torchrot.fit_rotation_info(M, max_iter=max_iter)
+        assert isinstance(info, torchrot.FitInfo)
+        assert torch.equal(info.R, R)
+        assert info.iterations.shape == batch and info.iterations.dtype == torch.int32
+        assert info.status.shape == batch and info.status.dtype == torch.uint8
     # with a warm start of the same batch shape
     init = rotations(batch, 2, dtype)
-    Ri = torchrot.fit_rotation(M, init, max_iter=max_iter)
+    Ri = fit.fn(M, init, max_iter=max_iter)
     assert Ri.shape == M.shape
-    flat_init = torchrot.fit_rotation(M.reshape(-1, 3, 3), init.reshape(-1, 3, 3), max_iter=max_iter)
+    flat_init = fit.fn(M.reshape(-1, 3, 3), init.reshape(-1, 3, 3), max_iter=max_iter)
     assert torch.equal(Ri.reshape(-1, 3, 3), flat_init)
 
 
-def test_single_matrix_matches_batched(dtype):
+def test_single_matrix_matches_batched(dtype, fit):
     M = _gaussian((9,), 3, dtype)
-    R = torchrot.fit_rotation(M)
+    R = fit.fn(M)
     for i in range(9):
-        assert torch.equal(torchrot.fit_rotation(M[i]), R[i])
+        assert torch.equal(fit.fn(M[i]), R[i])
 
 
 @pytest.mark.parametrize(
@@ -60,11 +62,11 @@ def test_single_matrix_matches_batched(dtype):
     ids=str,
 )
 @pytest.mark.parametrize("max_iter", [None, 1])
-def test_init_broadcasting(m_batch, init_batch, dtype, max_iter):
+def test_init_broadcasting(m_batch, init_batch, dtype, max_iter, fit):
     M = _gaussian(m_batch, 4, dtype)
     init = rotations(init_batch, 5, dtype)
-    R = torchrot.fit_rotation(M, init, max_iter=max_iter)
-    expected = torchrot.fit_rotation(M, init.expand(M.shape).contiguous(), max_iter=max_iter)
+    R = fit.fn(M, init, max_iter=max_iter)
+    expected = fit.fn(M, init.expand(M.shape).contiguous(), max_iter=max_iter)
     assert R.shape == M.shape
     assert torch.equal(R, expected)
 
@@ -101,14 +103,14 @@ NON_CONTIGUOUS_KINDS = [
 
 @pytest.mark.parametrize("kind", NON_CONTIGUOUS_KINDS)
 @pytest.mark.parametrize("max_iter", [None, 1])
-def test_non_contiguous_M(kind, dtype, max_iter):
+def test_non_contiguous_M(kind, dtype, max_iter, fit):
     M = _non_contiguous_inputs(dtype)[kind]
     assert not M.is_contiguous()
     init = None
     if max_iter is not None:
-        init = rotation_svd(M.double()).to(dtype) @ rotations(M.shape[:-2], 8, dtype, math.radians(10))
-    R = torchrot.fit_rotation(M, init, max_iter=max_iter)
-    expected = torchrot.fit_rotation(M.contiguous(), init, max_iter=max_iter)
+        init = fit.svd(M.double()).to(dtype) @ rotations(M.shape[:-2], 8, dtype, math.radians(10))
+    R = fit.fn(M, init, max_iter=max_iter)
+    expected = fit.fn(M.contiguous(), init, max_iter=max_iter)
     if kind in ("column_major_batch", "tiled_batch"):  # structure of arrays: the result keeps M's layout
         assert R.stride() == M.stride()
     else:
@@ -116,15 +118,15 @@ def test_non_contiguous_M(kind, dtype, max_iter):
     assert torch.equal(R, expected)
 
 
-def test_non_contiguous_init(dtype):
+def test_non_contiguous_init(dtype, fit):
     M = make_matrices("rot60", 50, 9, dtype)
-    R0 = rotation_svd(M.double()).to(dtype)
+    R0 = fit.svd(M.double()).to(dtype)
     for init in (R0.mT.contiguous().mT, R0.repeat(2, 1, 1)[::2], R0.permute(1, 2, 0).contiguous().permute(2, 0, 1)):
         assert not init.is_contiguous()
         for max_iter in (None, 1):
             assert torch.equal(
-                torchrot.fit_rotation(M, init, max_iter=max_iter),
-                torchrot.fit_rotation(M, init.contiguous(), max_iter=max_iter),
+                fit.fn(M, init, max_iter=max_iter),
+                fit.fn(M, init.contiguous(), max_iter=max_iter),
             )
 
 
@@ -146,63 +148,65 @@ def _outs(shape, dtype):
 
 @pytest.mark.parametrize("kind", ["contiguous", "permuted", "transposed", "batch_step", "inner_step"])
 @pytest.mark.parametrize("out_dtype", [torch.float32, torch.float64, torch.float16, torch.bfloat16], ids=str)
-def test_out(kind, out_dtype):
+def test_out(kind, out_dtype, fit):
     M = make_matrices("gaussian", 50, 10, torch.float64).to(out_dtype)
-    expected = torchrot.fit_rotation(M)
+    expected = fit.fn(M)
     out = _outs(M.shape, out_dtype)[kind]
     out.fill_(123.0)
-    returned = torchrot.fit_rotation(M, out=out)
+    returned = fit.fn(M, out=out)
     assert returned is out
     assert torch.equal(out, expected)
+    if fit.orthogonal:
+        return
     # and through the operator directly
     out2 = _outs(M.shape, out_dtype)[kind]
     assert op.fit_rotation_out(M, None, None, "conservative", out2) is None
     assert torch.equal(out2, expected)
 
 
-def test_out_leaves_neighbouring_memory_alone(dtype):
+def test_out_leaves_neighbouring_memory_alone(dtype, fit):
     M = make_matrices("gaussian", 20, 11, dtype)
     storage = torch.full((2 * 20, 3, 3), 7.0, dtype=dtype)
-    torchrot.fit_rotation(M, out=storage[1::2])
+    fit.fn(M, out=storage[1::2])
     assert (storage[::2] == 7.0).all()
-    assert torch.equal(storage[1::2], torchrot.fit_rotation(M))
+    assert torch.equal(storage[1::2], fit.fn(M))
 
 
 @pytest.mark.parametrize("max_iter", [1, 3, None])
-def test_out_aliases_init(dtype, variant, max_iter):
+def test_out_aliases_init(dtype, variant, max_iter, fit):
     """In-place warm-start update: fit_rotation(M, init=R, out=R)."""
     M = make_matrices("warm", 500, 12, dtype)
-    init = (rotation_svd(M.double()) @ rotations((500,), 13, torch.float64, math.radians(20))).to(dtype)
-    expected = torchrot.fit_rotation(M, init, max_iter=max_iter, variant=variant)
+    init = (fit.svd(M.double()) @ rotations((500,), 13, torch.float64, math.radians(20))).to(dtype)
+    expected = fit.fn(M, init, max_iter=max_iter, variant=variant)
     R = init.clone()
-    returned = torchrot.fit_rotation(M, init=R, max_iter=max_iter, variant=variant, out=R)
+    returned = fit.fn(M, init=R, max_iter=max_iter, variant=variant, out=R)
     assert returned is R
     assert torch.equal(R, expected)
     # non-contiguous R updated in place
     Rt = init.mT.contiguous().mT
-    torchrot.fit_rotation(M, init=Rt, max_iter=max_iter, variant=variant, out=Rt)
+    fit.fn(M, init=Rt, max_iter=max_iter, variant=variant, out=Rt)
     assert torch.equal(Rt, expected)
 
 
-def test_out_aliases_M(dtype):
+def test_out_aliases_M(dtype, fit):
     M = make_matrices("gaussian", 300, 14, dtype)
-    expected = torchrot.fit_rotation(M)
+    expected = fit.fn(M)
     Mc = M.clone()
-    assert torchrot.fit_rotation(Mc, out=Mc) is Mc
+    assert fit.fn(Mc, out=Mc) is Mc
     assert torch.equal(Mc, expected)
     # with a warm start as well
     init = rotations((300,), 15, dtype)
-    expected = torchrot.fit_rotation(M, init, max_iter=2)
+    expected = fit.fn(M, init, max_iter=2)
     Mc = M.clone()
-    torchrot.fit_rotation(Mc, init, max_iter=2, out=Mc)
+    fit.fn(Mc, init, max_iter=2, out=Mc)
     assert torch.equal(Mc, expected)
 
 
-def test_out_aliases_M_reduced_precision():
+def test_out_aliases_M_reduced_precision(fit):
     M = make_matrices("gaussian", 100, 16, torch.float64).half()
-    expected = torchrot.fit_rotation(M)
+    expected = fit.fn(M)
     Mc = M.clone()
-    torchrot.fit_rotation(Mc, out=Mc)
+    fit.fn(Mc, out=Mc)
     assert torch.equal(Mc, expected)
 
 
@@ -213,18 +217,20 @@ def test_out_aliases_M_reduced_precision():
 
 @pytest.mark.parametrize("low", [torch.float16, torch.bfloat16], ids=str)
 @pytest.mark.parametrize("max_iter", [None, 1])
-def test_reduced_precision(low, variant, max_iter):
+def test_reduced_precision(low, variant, max_iter, fit):
     M64 = make_matrices("rot60", 2000, 20, torch.float64)
     M = M64.to(low)
-    R = torchrot.fit_rotation(M, max_iter=max_iter, variant=variant)
+    R = fit.fn(M, max_iter=max_iter, variant=variant)
     assert R.dtype == low and R.shape == M.shape
     # computed in float32 and rounded once
-    assert torch.equal(R, torchrot.fit_rotation(M.float(), max_iter=max_iter, variant=variant).to(low))
+    assert torch.equal(R, fit.fn(M.float(), max_iter=max_iter, variant=variant).to(low))
     if max_iter is None:
         # close to the float32 fit of the unrounded data: the input rounding
         # (eps of the dtype, amplified <= ~10x on rot60 data) dominates
-        R32 = torchrot.fit_rotation(M64.float(), variant=variant)
+        R32 = fit.fn(M64.float(), variant=variant)
         assert (R.float() - R32).abs().max().item() <= 10 * torch.finfo(low).eps
+        if fit.orthogonal:
+            return
         info = torchrot.fit_rotation_info(M, variant=variant)
         assert info.R.dtype == low and torch.equal(info.R, R)
 
@@ -273,6 +279,7 @@ ERROR_CASES = {
 
 CALLERS = {
     "fit_rotation": lambda M, init, k, v: torchrot.fit_rotation(M, init, max_iter=k, variant=v),
+    "fit_orthogonal": lambda M, init, k, v: torchrot.fit_orthogonal(M, init, max_iter=k, variant=v),
     "fit_rotation_info": lambda M, init, k, v: torchrot.fit_rotation_info(M, init, max_iter=k, variant=v),
     "op": lambda M, init, k, v: op.fit_rotation(M, init, k, v),
     "op_info": lambda M, init, k, v: op.fit_rotation_info(M, init, k, v),
@@ -288,6 +295,11 @@ def test_argument_errors(case, caller):
         # torch.ops parses its arguments against the schema first: torch's own
         # RuntimeError, naming the argument (docs/errors.md)
         exception, match = RuntimeError, r"argument 'max_iter'"
+    if caller == "fit_orthogonal":
+        if case == "init_one_reflection":  # a reflection is an orthogonal warm start
+            assert CALLERS[caller](M, init, max_iter, variant).shape == M.shape
+            return
+        match = "^torchrot.fit_orthogonal: .*" + match.replace("rotation", "orthogonal")
     with pytest.raises(exception, match=match) as excinfo:
         CALLERS[caller](M, init, max_iter, variant)
     assert type(excinfo.value) is exception
@@ -317,31 +329,32 @@ OUT_CASES = {
 }
 
 
-@pytest.mark.parametrize("via", ["fit_rotation", "op"])
+@pytest.mark.parametrize("via", ["fit_rotation", "fit_orthogonal", "op"])
 @pytest.mark.parametrize("case", sorted(OUT_CASES))
 def test_out_errors(case, via):
     make_out, exception, match = OUT_CASES[case]
     out = make_out()
     with pytest.raises(exception, match=match) as excinfo:
-        if via == "fit_rotation":
-            torchrot.fit_rotation(M5, out=out)
-        else:
+        if via == "op":
             op.fit_rotation_out(M5, None, None, "conservative", out)
+        else:
+            getattr(torchrot, via)(M5, out=out)
     assert type(excinfo.value) is exception
+    assert str(excinfo.value).startswith(f"torchrot.{'fit_rotation' if via == 'op' else via}: ")
 
 
-def test_errors_leave_out_untouched_for_argument_checks():
+def test_errors_leave_out_untouched_for_argument_checks(fit):
     out = torch.full((5, 3, 3), 3.0)
     with pytest.raises(ValueError):
-        torchrot.fit_rotation(M5, variant="nope", out=out)
+        fit.fn(M5, variant="nope", out=out)
     with pytest.raises(TypeError):
-        torchrot.fit_rotation(M5, ROT5.int(), out=out)
+        fit.fn(M5, ROT5.int(), out=out)
     with pytest.raises(ValueError):
-        torchrot.fit_rotation(M5, 2 * ROT5, out=out)
+        fit.fn(M5, 2 * ROT5, out=out)
     assert (out == 3.0).all()
 
 
-def test_good_init_within_tolerance_accepted(dtype):
+def test_good_init_within_tolerance_accepted(dtype, fit):
     """init is accepted below |R^T R - I|_F < INIT_TOLERANCE (5e-2, any
     dtype), rejected above, and an accepted but rough init still gives
     rotations at the dtype's precision."""
@@ -355,13 +368,13 @@ def test_good_init_within_tolerance_accepted(dtype):
         deviation = (init.mT @ init - eye).norm(dim=(-2, -1)).max().item()
         assert (deviation < INIT_TOLERANCE) == accepted, (drift, deviation)  # the case tests what it says
         if accepted:
-            R = torchrot.fit_rotation(M, init.to(dtype), max_iter=1)
-            errors = rotation_errors(R, M)
+            R = fit.fn(M, init.to(dtype), max_iter=1)
+            errors = fit.errors(R, M)
             assert errors["orthonormality"].max() <= CRITERIA[dtype]["orthonormality"]
             assert errors["det"].max() <= CRITERIA[dtype]["det"]
         else:
-            with pytest.raises(ValueError, match="init must hold rotations"):
-                torchrot.fit_rotation(M, init.to(dtype), max_iter=1)
+            with pytest.raises(ValueError, match=f"init must hold {fit.init_words}"):
+                fit.fn(M, init.to(dtype), max_iter=1)
 
 
 def test_status_codes_are_one_enum():

@@ -1,4 +1,5 @@
-"""Derivatives of fit_rotation at the degenerate inputs where SVD gradients
+"""Derivatives of fit_rotation (and fit_orthogonal, where the fuzz runs on
+both: the ``fit`` fixture) at the degenerate inputs where SVD gradients
 fail (repeated singular values, rank-deficient M, half-turns): finite and
 bounded by the damping, converging to the exact gradient as the damping
 vanishes, NaN only where the input is NaN/Inf.
@@ -19,7 +20,7 @@ from torchrot.testing import DEGENERATE_FAMILIES, dtype_id, make_degenerate_matr
 
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
-def test_degenerate_fuzz_finite_and_bounded(dtype):
+def test_degenerate_fuzz_finite_and_bounded(dtype, fit):
     """>= 1e5 matrices over every degenerate family: no NaN/Inf gradient, and
     |dL/dM|_F <= |G|_F / (gradient_eps |M|_F) (the damping's bound:
     |u| <= |g| / (2 lambda), |g| <= sqrt(2) |G|_F, |R [u]x|_F = sqrt(2) |u|)."""
@@ -28,7 +29,7 @@ def test_degenerate_fuzz_finite_and_bounded(dtype):
                    for name in DEGENERATE_FAMILIES])
     assert M.shape[0] >= 100_000
     G = torch.randn(M.shape, generator=torch.Generator().manual_seed(12), dtype=dtype)
-    got = _gradient(M, G)
+    got = _gradient(M, G, fit.fn)
     assert torch.isfinite(got).all(), f"{int((~torch.isfinite(got)).sum())} non-finite entries"
     norm_M = M.double().norm(dim=(-2, -1))
     bound = 1.001 * G.double().norm(dim=(-2, -1)) / (GRADIENT_EPS * norm_M)

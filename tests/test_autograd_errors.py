@@ -1,6 +1,6 @@
 """Errors of fit_rotation's derivative: out= with an input that requires
-grad, bad gradient_eps, bad arguments of the derivative operator, and second
-derivatives, which raise instead of returning zeros.
+grad, bad gradient_eps and bad arguments of the derivative operator. (Second
+derivatives work: tests/test_transforms_second_derivatives.py.)
 """
 from __future__ import annotations
 
@@ -45,17 +45,3 @@ def test_backward_op_argument_errors():
         op.fit_rotation_backward(G, R.view(4, 9), M, 1e-6)
     with pytest.raises(TypeError, match="R must be float32, float64"):
         op.fit_rotation_backward(G.long(), R.long(), M.long(), 1e-6)
-
-
-def test_second_derivatives_raise_instead_of_zeros():
-    M = make_matrices("gaussian", 3, seed=1).requires_grad_()
-    (g,) = torch.autograd.grad(torchrot.fit_rotation(M).sum(), M, create_graph=True)
-    with pytest.raises(RuntimeError, match="second derivatives are not implemented"):
-        g.sum().backward()
-    (g,) = torch.autograd.grad(op.fit_rotation(M).sum(), M, create_graph=True)
-    with pytest.raises(RuntimeError, match="second derivatives are not implemented"):
-        g.sum().backward()
-    from torch.func import hessian
-
-    with pytest.raises(RuntimeError, match="second derivatives are not implemented"):
-        hessian(lambda m: torchrot.fit_rotation(m).sum())(M[0].detach())

@@ -1,8 +1,9 @@
-"""Derivatives of fit_rotation through the optimality condition (R^T M
-symmetric), exact where the gradient exists: against finite differences
-(gradcheck, float64), autograd through float64 SVD where that is finite,
-float32 SVD's accuracy, RoMa's special_procrustes; the Jacobian is a
-rotational tangent; init receives no gradient.
+"""Derivatives of fit_rotation (and of fit_orthogonal, the ``fit`` fixture)
+through the optimality condition (R^T M symmetric), exact where the
+gradient exists: against finite differences (gradcheck, float64), autograd
+through float64 SVD where that is finite, float32 SVD's accuracy, RoMa's
+special_procrustes and procrustes; the Jacobian is a rotational tangent;
+init receives no gradient.
 """
 from __future__ import annotations
 
@@ -23,9 +24,9 @@ SMOOTH = ("warm", "rot60", "uniform", "gaussian", "det_negative", "symmetric")
 
 
 @pytest.mark.parametrize("name", SMOOTH)
-def test_gradcheck_random(name):
+def test_gradcheck_random(name, fit):
     M = make_matrices(name, 6, seed=3).requires_grad_()
-    assert torch.autograd.gradcheck(torchrot.fit_rotation, (M,), eps=1e-6, atol=1e-8, rtol=1e-6)
+    assert torch.autograd.gradcheck(fit.fn, (M,), eps=1e-6, atol=1e-8, rtol=1e-6)
 
 
 @pytest.mark.parametrize(
@@ -39,9 +40,9 @@ def test_gradcheck_random(name):
     ],
     ids=["identity", "diag221", "scaled_rotation", "det_negative", "half_turn_pair"],
 )
-def test_gradcheck_structured(M):
+def test_gradcheck_structured(M, fit):
     M = M.double().requires_grad_()
-    assert torch.autograd.gradcheck(torchrot.fit_rotation, (M,), eps=1e-6, atol=1e-8, rtol=1e-6)
+    assert torch.autograd.gradcheck(fit.fn, (M,), eps=1e-6, atol=1e-8, rtol=1e-6)
 
 
 def test_matches_svd_autograd_where_finite():
@@ -77,13 +78,16 @@ def test_float32_gradient_as_accurate_as_float32_svd(name):
     assert ours.quantile(0.99) <= 2 * svd32.quantile(0.99) and ours.max() <= 2 * svd32.max()
 
 
-def test_matches_roma_special_procrustes():
+def test_matches_roma(fit):
+    """roma.special_procrustes for fit_rotation, roma.procrustes for
+    fit_orthogonal (on matrices of either determinant)."""
     roma = pytest.importorskip("roma")
     M = make_matrices("uniform", 500, seed=2)
+    M[1::2] = -M[1::2]
     G = torch.randn(M.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     Mr = M.clone().requires_grad_()
-    roma.special_procrustes(Mr).backward(G)
-    got = _gradient(M, G)
+    (roma.procrustes if fit.orthogonal else roma.special_procrustes)(Mr).backward(G)
+    got = _gradient(M, G, fit.fn)
     err = (got - Mr.grad).norm(dim=(-2, -1)) / Mr.grad.norm(dim=(-2, -1))
     # RoMa damps its SVD backward (gradient_eps=1e-5 on sigma differences).
     assert err.median() < 1e-9 and err.max() < 1e-4
@@ -101,16 +105,16 @@ def test_jacobian_is_rotational_tangent(dtype):
     assert (W + W.mT).abs().max() <= tol * W.abs().max()
 
 
-def test_init_receives_no_gradient():
+def test_init_receives_no_gradient(fit):
     M, init = make_warm_start("warm", 10, seed=1)
     M.requires_grad_()
     init.requires_grad_()
-    torchrot.fit_rotation(M, init).sum().backward()
+    fit.fn(M, init).sum().backward()
     assert M.grad is not None and init.grad is None
 
 
-def test_broadcast_init_gradient_shape():
+def test_broadcast_init_gradient_shape(fit):
     M = make_matrices("rot60", 4, seed=1).reshape(2, 2, 3, 3).requires_grad_()
     init = torch.eye(3, dtype=torch.float64)
-    torchrot.fit_rotation(M, init, max_iter=3).sum().backward()
+    fit.fn(M, init, max_iter=3).sum().backward()
     assert M.grad.shape == M.shape and torch.isfinite(M.grad).all()

@@ -65,12 +65,12 @@ def test_vmap_with_batched_init():
         assert torch.equal(got, expected)
 
 
-def test_compile_fullgraph_backward():
+def test_compile_fullgraph_backward(fit):
     torch._dynamo.reset()
     M = make_matrices("gaussian", 16, seed=1, dtype=torch.float32)
 
     def loss(m, eps):
-        return (torchrot.fit_rotation(m, gradient_eps=eps) * m).sum()
+        return (fit.fn(m, gradient_eps=eps) * m).sum()
 
     compiled = torch.compile(loss, fullgraph=True)
     for eps in (1e-6, 0.3):
@@ -81,12 +81,12 @@ def test_compile_fullgraph_backward():
         torch.testing.assert_close(Mc.grad, Me.grad)
 
 
-def test_autocast_runs_in_float32():
+def test_autocast_runs_in_float32(fit):
     M = make_matrices("gaussian", 8, seed=2, dtype=torch.float32).requires_grad_()
     with torch.autocast("cpu", dtype=torch.bfloat16):
         x = torch.nn.functional.linear(M.view(8, 9), torch.eye(9)).view(8, 3, 3)  # bf16 under autocast
         assert x.dtype == torch.bfloat16
-        R = torchrot.fit_rotation(x)
+        R = fit.fn(x)
         R_op = op.fit_rotation(x.detach())
     assert R.dtype == torch.float32 and R_op.dtype == torch.float32
     R.sum().backward()

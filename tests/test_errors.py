@@ -107,6 +107,16 @@ CASES = {
     "rotation_svd-M-ndarray": (lambda: torchrot.rotation_svd(np.eye(3)), TypeError, r"rotation_svd: M.*Tensor"),
     # torch.ops parses arguments against the schema before any torchrot code runs
     "op-init-ndarray": (lambda: op.fit_rotation(M, np.eye(3)), RuntimeError, r"argument 'init'"),
+    # fit_orthogonal: fit_rotation's checks, naming it, and its own for init
+    "orthogonal-M-shape": (lambda: torchrot.fit_orthogonal(torch.randn(4, 4)), ValueError,
+                           r"^torchrot\.fit_orthogonal: M must have shape \(\.\.\., 3, 3\)"),
+    "orthogonal-init-not-orthogonal": (lambda: torchrot.fit_orthogonal(M, 2 * R), ValueError,
+                                       r"^torchrot\.fit_orthogonal: init must hold orthogonal matrices.*4 of 4"),
+    "orthogonal-variant-unknown": (lambda: torchrot.fit_orthogonal(M, variant="Newton"), ValueError,
+                                   r"^torchrot\.fit_orthogonal: variant must be one of"),
+    "orthogonal-out-requires-grad": (lambda: torchrot.fit_orthogonal(M.clone().requires_grad_(),
+                                                                     out=torch.empty_like(M)),
+                                     ValueError, r"^torchrot\.fit_orthogonal: out= does not support"),
 }
 
 
@@ -210,17 +220,17 @@ def test_every_kernel_raises_the_same_error(case, kernel):
 
 
 @pytest.mark.parametrize("kernel", kernel_path_params())
-def test_errors_change_nothing_on_any_kernel(kernel):
-    """A raising fit_rotation_out leaves out, M and init as they were."""
+def test_errors_change_nothing_on_any_kernel(kernel, fit):
+    """A raising fit_rotation_out (or fit_orthogonal's out=) leaves out, M and init as they were."""
     init = R.clone()
     init[2] *= 2  # one bad warm start: the in-place update must not touch the others
     M_ = M.clone()
     before = (init.clone(), M_.clone())
     with KERNEL_PATHS[kernel]():
         with pytest.raises(ValueError, match="1 of 4 are not"):
-            torchrot.fit_rotation(M_, init, max_iter=1, out=init)
+            fit.fn(M_, init, max_iter=1, out=init)
         with pytest.raises(ValueError, match="1 of 4 are not"):
-            torchrot.fit_rotation(M_, init, max_iter=1, out=M_)
+            fit.fn(M_, init, max_iter=1, out=M_)
     assert torch.equal(init, before[0]) and torch.equal(M_, before[1])
 
 
@@ -235,6 +245,8 @@ COMPILE_CASES = {
     "init-dtype": lambda m: torchrot.fit_rotation(m, ROT.int()),
     "out-dtype": lambda m: torchrot.fit_rotation(m, out=torch.empty(4, 3, 3, dtype=torch.float64)),
     "info-variant": lambda m: torchrot.fit_rotation_info(m, variant="x"),
+    "orthogonal-variant": lambda m: torchrot.fit_orthogonal(m, variant="Newton"),
+    "orthogonal-out-dtype": lambda m: torchrot.fit_orthogonal(m, out=torch.empty(4, 3, 3, dtype=torch.float64)),
 }
 
 

@@ -1,5 +1,6 @@
 """out= is an in-place operation under torch's rules, on the C++ kernel and on
-the device-generic path alike: out's version counter is bumped once per
+the device-generic path alike, through fit_rotation, the operator and
+fit_orthogonal: out's version counter is bumped once per
 write (so autograd refuses to differentiate through a result it overwrote),
 no call that would record a derivative is accepted (M or out requiring grad in
 grad mode, a forward-mode tangent, torch.func.grad), an inference tensor is
@@ -32,7 +33,14 @@ def _op_out(M, init, out):
     return out
 
 
-CALLS = {"fit_rotation": _fit_out, "op": _op_out}
+def _orthogonal_out(M, init, out):
+    return torchrot.fit_orthogonal(M, init, max_iter=1, out=out)
+
+
+CALLS = {"fit_rotation": _fit_out, "op": _op_out, "fit_orthogonal": _orthogonal_out}
+#: call -> the fit it writes (without out=)
+EXPECTED = {"fit_rotation": torchrot.fit_rotation, "op": torchrot.fit_rotation,
+            "fit_orthogonal": torchrot.fit_orthogonal}
 AUTOGRAD_ERROR = r"out= does not support automatic differentiation"
 
 
@@ -49,7 +57,7 @@ def test_version_bumped_once_per_write(where, call, kernel, dtype):
     out = {"fresh": torch.empty_like(M), "init": init, "M": M}[where]
     before = out._version
     with KERNEL_PATHS[kernel]():
-        expected = torchrot.fit_rotation(M.clone(), init.clone(), max_iter=1)
+        expected = EXPECTED[call](M.clone(), init.clone(), max_iter=1)
         CALLS[call](M, init, out)
     assert out._version == before + 1
     assert torch.equal(bits(out), bits(expected))
@@ -111,7 +119,7 @@ def test_requires_grad_written_under_no_grad(call, kernel, dtype):
     out = torch.zeros_like(M).requires_grad_()
     with KERNEL_PATHS[kernel](), torch.no_grad():
         CALLS[call](M, init, out)
-        expected = torchrot.fit_rotation(M, init, max_iter=1)
+        expected = EXPECTED[call](M, init, max_iter=1)
     assert out._version == 1 and out.requires_grad and out.is_leaf
     assert torch.equal(out.detach(), expected)
 
@@ -126,7 +134,7 @@ def test_init_requiring_grad_is_allowed(call, kernel, dtype):
     out = torch.empty_like(M)
     with KERNEL_PATHS[kernel]():
         CALLS[call](M, init.clone().requires_grad_(), out)
-        expected = torchrot.fit_rotation(M, init, max_iter=1)
+        expected = EXPECTED[call](M, init, max_iter=1)
     assert not out.requires_grad
     assert torch.equal(out, expected)
 
@@ -146,11 +154,11 @@ def test_forward_mode_tangent_refused(dual, call, kernel):
 
 
 @pytest.mark.parametrize("kernel", kernel_path_params())
-def test_torch_func_grad_refused(kernel):
+def test_torch_func_grad_refused(kernel, fit):
     M, init = _problem(torch.float64)
     out = torch.zeros_like(M)
     with KERNEL_PATHS[kernel](), pytest.raises(ValueError, match=AUTOGRAD_ERROR):
-        torch.func.grad(lambda m: torchrot.fit_rotation(m, init, max_iter=1, out=out).sum())(M)
+        torch.func.grad(lambda m: fit.fn(m, init, max_iter=1, out=out).sum())(M)
     assert (out == 0).all()
 
 
@@ -167,18 +175,19 @@ def test_inference_out_written_only_in_inference_mode(inputs, call, kernel, dtyp
         _refused(CALLS[call], M, init, out, match="out is an inference tensor")
         with torch.inference_mode():
             CALLS[call](M, init, out)
-        expected = torchrot.fit_rotation(M, init, max_iter=1)
+        expected = EXPECTED[call](M, init, max_iter=1)
     assert torch.equal(out, expected)
 
 
 @pytest.mark.parametrize("kernel", kernel_path_params())
-def test_normal_out_written_in_inference_mode(kernel, dtype):
+@pytest.mark.parametrize("call", sorted(CALLS))
+def test_normal_out_written_in_inference_mode(call, kernel, dtype):
     M, init = _problem(dtype)
     out = torch.zeros_like(M)
     with KERNEL_PATHS[kernel]():
         with torch.inference_mode():
-            _fit_out(M, init, out)
-        expected = torchrot.fit_rotation(M, init, max_iter=1)
+            CALLS[call](M, init, out)
+        expected = EXPECTED[call](M, init, max_iter=1)
     assert torch.equal(out, expected)
 
 

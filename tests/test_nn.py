@@ -160,7 +160,8 @@ def test_modules_are_stateless_and_picklable(make):
 def test_extra_repr():
     assert repr(RotationFit(max_iter=1, variant="newton")) == \
         "RotationFit(max_iter=1, variant='newton', gradient_eps=None)"
-    assert repr(RigidRegistration(scale=True)) == "RigidRegistration(scale=True)"
+    assert repr(RigidRegistration(scale=True)) == "RigidRegistration(scale=True, allow_reflection=False)"
+    assert repr(RigidRegistration(allow_reflection=True)) == "RigidRegistration(scale=False, allow_reflection=True)"
     model = nn.Sequential(nn.Linear(4, 9), RotationFit())
     assert "RotationFit(max_iter=None" in repr(model)
     assert set(model.state_dict()) == {"0.weight", "0.bias"}

@@ -83,6 +83,24 @@ def test_compile_in_place_and_info(backend, compile_data):
     assert all(torch.equal(a, b) for a, b in zip(got, expected))
 
 
+@pytest.mark.parametrize("backend", ["aot_eager", "inductor"])
+def test_compile_orthogonal_fit(backend, compile_data):
+    """fit_orthogonal compiled (fullgraph) on matrices of either determinant:
+    the eager result, also written into out= and from a warm start."""
+    torch._dynamo.reset()
+    M, init = compile_data
+    M = M.clone()
+    M[1::2] = -M[1::2]
+
+    def fit(m, r, out):
+        torchrot.fit_orthogonal(m, out=out)
+        return torchrot.fit_orthogonal(m, r, max_iter=1), out
+
+    out_c, out_e = torch.empty_like(M), torch.empty_like(M)
+    got, expected = torch.compile(fit, backend=backend, fullgraph=True)(M, init, out_c), fit(M, init, out_e)
+    assert torch.equal(got[0], expected[0]) and torch.equal(out_c, out_e)
+
+
 @pytest.mark.parametrize("layout", ["soa", "tiles 16x8", "tiles 8x8"])
 def test_compile_keeps_result_layout(layout):
     """Inductor with dynamic shapes: values and strides of the eager result,

@@ -36,6 +36,8 @@ def test_meta_op(batch, dt):
         op.fit_rotation(M, None, None, "conservative"),
         op.fit_rotation(M, init, 1, "newton"),
         torchrot.fit_rotation(M, init, max_iter=2, variant="gershgorin"),
+        torchrot.fit_orthogonal(M, init, max_iter=2, variant="gershgorin"),
+        torchrot.fit_orthogonal(M, out=torch.empty_like(M)),
     ):
         _check_meta_result(R, None, None, M, batch, dt)
     _check_meta_result(*op.fit_rotation_info(M, init, None, "conservative"), M, batch, dt)

@@ -42,6 +42,11 @@ ERRORS = [
     ("two points", lambda: torchrot.rigid_registration(_X[:, :2], _X[:, :2]), ValueError,
      "at least 3 points, got N = 2"),
     ("scale not bool", lambda: torchrot.rigid_registration(_X, _X, scale=1), TypeError, "scale must be a bool"),
+    ("allow_reflection not bool", lambda: torchrot.rigid_registration(_X, _X, allow_reflection=None), TypeError,
+     "allow_reflection must be a bool, got None"),
+    ("init not orthogonal with allow_reflection",
+     lambda: torchrot.rigid_registration(_X, _X, init=2 * torch.eye(3), allow_reflection=True), ValueError,
+     r"^torchrot\.fit_orthogonal: init must hold orthogonal matrices"),
     ("coincident x with scale", lambda: torchrot.rigid_registration(_X[:, :1].expand(5, 10, 3), _X, scale=True),
      ValueError, "must not all coincide"),
 ]

@@ -2,7 +2,7 @@
 batch dimensions, the empty batch, meta tensors, non-contiguous inputs
 (left unmodified), half precision and autocast, the warm start (init: passed
 on to fit_rotation as it is, and checked in every dtype), extreme finite
-weights and torch.compile."""
+weights, torch.compile, and allow_reflection (the orthogonal fit)."""
 from __future__ import annotations
 
 import pytest
@@ -188,3 +188,57 @@ def test_compiles_fullgraph():
     ref = torchrot.rigid_registration(x, y, w, scale=True)
     for a, b, name in zip(out, ref, "Rts"):
         assert_close(a, b, 1e-12, name)
+
+
+# ---------------------------------------------------------------------------
+# allow_reflection: the orthogonal fit (PyTorch3D's allow_reflection=True)
+# ---------------------------------------------------------------------------
+
+
+def _reflection_reference(x, y, w, scale):
+    """Umeyama without the determinant correction, by SVD in float64: Q = U V^T
+    of the weighted cross-covariance, s = sum of its singular values / var."""
+    x, y, w = x.double(), y.double(), w.double()
+    p = w / w.sum(-1, keepdim=True)
+    x_mean, y_mean = (p[..., None] * x).sum(-2), (p[..., None] * y).sum(-2)
+    xc, yc = x - x_mean[..., None, :], y - y_mean[..., None, :]
+    M = (p[..., None] * yc).mT @ xc
+    U, S, Vh = torch.linalg.svd(M)
+    Q = U @ Vh
+    s = S.sum(-1) / (p * xc.square().sum(-1)).sum(-1) if scale else torch.ones_like(S[..., 0])
+    t = y_mean - s[..., None] * (Q @ x_mean[..., None]).squeeze(-1)
+    return Q, t, s
+
+
+@pytest.mark.parametrize("scale", [False, True])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)
+def test_allow_reflection_fits_a_mirror_image(scale, dtype):
+    gen = torch.Generator().manual_seed(31)
+    x = torch.randn(6, 20, 3, generator=gen, dtype=torch.float64)
+    mirror = torchrot.fit_orthogonal(torch.randn(6, 3, 3, generator=gen, dtype=torch.float64))
+    mirror = mirror * torch.linalg.det(mirror).sign()[:, None, None] * -1  # det -1: reflections
+    y = 1.7 * x @ mirror.mT + torch.randn(6, 1, 3, generator=gen, dtype=torch.float64)
+    y = y + 0.01 * torch.randn(y.shape, generator=gen, dtype=torch.float64)
+    w = torch.rand(6, 20, generator=gen, dtype=torch.float64) + 0.2
+    x, y, w = x.to(dtype), y.to(dtype), w.to(dtype)
+    Q, t, s = torchrot.rigid_registration(x, y, w, scale=scale, allow_reflection=True)
+    assert (torch.linalg.det(Q.double()) < 0).all()
+    tol = 1e-4 if dtype == torch.float32 else 1e-10
+    for got, want, what in zip((Q, t, s), _reflection_reference(x, y, w, scale), "Qts"):
+        assert_close(got, want, tol * max(1.0, want.abs().max().item()), what)
+    # without it: the nearest rotation, as before
+    R = torchrot.rigid_registration(x, y, w, scale=scale).R
+    assert (torch.linalg.det(R.double()) > 0).all()
+    assert torch.equal(R, torchrot.rigid_registration(x, y, w, scale=scale, allow_reflection=False).R)
+
+
+def test_allow_reflection_layer_and_warm_start():
+    x, y, _ = registration_problem((4,), n=12, seed=32, noise=0.05)
+    y = y * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)  # mirrored in z
+    w = torch.rand(4, 12, generator=torch.Generator().manual_seed(33), dtype=torch.float64) + 0.2
+    out = torchrot.rigid_registration(x, y, w, allow_reflection=True)
+    layer = torchrot.nn.RigidRegistration(allow_reflection=True)
+    for a, b in zip(layer(x, y, w), out):
+        assert torch.equal(a, b)
+    warm = torchrot.rigid_registration(x, y, w, init=out.R, allow_reflection=True)
+    assert_close(warm.R, out.R, 1e-12, "R from its own warm start")

@@ -61,6 +61,14 @@ def test_forward_mode_state():
     with forward_ad.dual_level():
         assert private.forward_level() == 0
     assert private.forward_level() == -1
+    with private.forward_grad_mode(False):
+        assert not private.forward_grad_enabled()
+        with private.forward_grad_mode(True):
+            assert private.forward_grad_enabled()
+        assert not private.forward_grad_enabled()
+    assert private.forward_grad_enabled()
+    with forward_ad.dual_level(), private.forward_grad_mode(False):  # no tangent is recorded
+        assert forward_ad.unpack_dual(forward_ad.make_dual(M, M) * 2).tangent is None
 
 
 def test_functorch_state_inside_transforms():
@@ -68,20 +76,30 @@ def test_functorch_state_inside_transforms():
 
     def probe(x):
         seen["active"] = private.functorch_transforms_active()
-        seen["level"] = private.innermost_functorch_level()
         seen["excluded"] = private.functorch_front_excluded()
-        seen["levels"] = private.functorch_levels(x)
         seen["wrapped"] = private.is_functorch_wrapped(x)
-        seen["outer"] = private.differentiating_levels_below(seen["level"])
         return x.sum()
 
     assert not private.functorch_transforms_active() and not private.is_functorch_wrapped(M)
     torch.func.vmap(torch.func.grad(probe))(M)
     assert seen["active"] and seen["wrapped"] and not seen["excluded"]
-    assert len(seen["levels"]) == 2 and seen["levels"][0] == seen["level"]  # grad wraps the vmap level
-    assert seen["outer"] == set()  # vmap, the level below, does not differentiate
-    torch.func.grad(lambda x: torch.func.grad(probe)(x).sum())(M[0])
-    assert seen["outer"] == {seen["level"] - 1}
+
+
+def test_functorch_front_excluded_inside_an_autograd_kernel_of_a_level(monkeypatch):
+    """Where the operators' Python Autograd kernel runs for one torch.func
+    level (FitRotationFunction's forward and jvp rule), the front key is
+    excluded: torchrot._autograd then dispatches past the Autograd keys to
+    reach the levels below (second derivatives)."""
+    seen = []
+    original = torchrot._autograd._at_levels_below
+
+    def spy(op, *args):
+        seen.append(private.functorch_front_excluded())
+        return original(op, *args)
+
+    monkeypatch.setattr(torchrot._autograd, "_at_levels_below", spy)
+    torch.func.jvp(torchrot.fit_rotation, (M,), (M,))
+    assert seen and all(seen)
 
 
 def test_single_level_function_records_at_each_level():

@@ -1,5 +1,5 @@
-"""torch.func transforms of fit_rotation, the operator, rigid_registration and
-the nn modules: in eager and under torch.compile (with and without
+"""torch.func transforms of fit_rotation, the operator, fit_orthogonal,
+rigid_registration and the nn modules: in eager and under torch.compile (with and without
 fullgraph=True), on the CPU kernel and on the device-generic path (the
 pure-PyTorch kernels that torchrot/_device_kernels.py registers for other devices, run on
 CPU tensors by torchrot.testing.generic_kernel).
@@ -86,6 +86,7 @@ _rigid_registration = RigidRegistration()  # scale=False: s is a constant output
 TARGETS = {
     "fit_rotation": lambda P: (torchrot.fit_rotation(P),),
     "op": lambda P: (torch.ops.torchrot.fit_rotation(P),),
+    "fit_orthogonal": lambda P: (torchrot.fit_orthogonal(P),),
     "RotationFit": lambda P: (_rotation_fit(P),),
     "rigid_registration": lambda x, y, w: tuple(torchrot.rigid_registration(x, y, w, scale=True)),
     "RigidRegistration": lambda x, y: tuple(_rigid_registration(x, y)),
@@ -215,7 +216,8 @@ def _compiled_function(target, transform, fullgraph):
 # ---------------------------------------------------------------------------
 
 TARGET_INPUTS = (
-    ("fit_rotation", "gaussian"), ("fit_rotation", "identity"), ("op", "gaussian"), ("RotationFit", "gaussian"),
+    ("fit_rotation", "gaussian"), ("fit_rotation", "identity"), ("op", "gaussian"), ("fit_orthogonal", "mixed_det"),
+    ("RotationFit", "gaussian"),
     ("rigid_registration", "points"), ("RigidRegistration", "points"),
 )
 MODES = ("eager", "compile", "fullgraph")
@@ -229,6 +231,8 @@ COMPILED = {
     "fit_rotation": (tuple(TRANSFORMS), ("compile", "fullgraph")),
     "rigid_registration": (tuple(TRANSFORMS), ("fullgraph",)),
     "op": (("grad", "jvp", "jacfwd", "vmap_grad", "backward", "forward_ad"), ("fullgraph",)),
+    "fit_orthogonal": (("grad", "jvp", "jacrev", "jacfwd", "vmap", "vmap_grad", "backward", "forward_ad"),
+                       ("fullgraph",)),
     "RotationFit": (("grad", "jvp", "jacrev", "vmap", "backward"), ("fullgraph",)),
     "RigidRegistration": (("grad", "jvp", "vmap", "backward", "forward_ad"), ("fullgraph",)),
 }

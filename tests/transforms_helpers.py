@@ -16,7 +16,7 @@ BACKEND = os.environ.get("TORCHROT_TEST_COMPILE_BACKEND", "aot_eager")
 
 
 def _inputs(target: str, name: str):
-    """(P, C): float64, batch 4."""
+    """(P, C): float64, batch 4 (``name``: "gaussian", "identity", or "mixed_det", gaussian with det of both signs)."""
     gen = torch.Generator().manual_seed(7)
     if target in ("rigid_registration", "RigidRegistration"):
         x = torch.randn(4, 5, 3, generator=gen, dtype=torch.float64)
@@ -28,6 +28,8 @@ def _inputs(target: str, name: str):
         M = torch.eye(3, dtype=torch.float64).repeat(4, 1, 1)
     else:
         M = torch.randn(4, 3, 3, generator=gen, dtype=torch.float64)
+        if name == "mixed_det":  # det < 0 for matrices 1 and 3 (det > 0 for all four above)
+            M[1::2] = -M[1::2]
     return (M.reshape(4, 9) if target == "RotationFit" else M), ()
 
 

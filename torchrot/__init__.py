@@ -18,12 +18,16 @@ torch.ops.torchrot.cpu_kernel()
 # The operators' kernels registered in Python: derivatives (Autograd, vmap,
 # autocast), fake kernels, and the kernels of devices without a native one.
 # (I001: nn, the public submodule, is imported last, after what it wraps.)
-from torchrot import _autograd, _constants, _device_kernels, _fake  # noqa: E402, F401, I001
+from torchrot import _autograd, _constants, _device_kernels, _fake, _sharding  # noqa: E402, F401, I001
 from torchrot._constants import FitStatus  # noqa: E402
 from torchrot.fitting import FitInfo, fit_rotation, fit_rotation_info  # noqa: E402
+from torchrot.orthogonal import fit_orthogonal  # noqa: E402
 from torchrot.reference import fit_rotation_reference, rotation_svd  # noqa: E402
 from torchrot.registration import RigidTransform, rigid_registration  # noqa: E402
 from torchrot import nn  # noqa: E402
+
+# DTensor's sharding strategies, as soon as torch.distributed.tensor is imported.
+_sharding.install()
 
 # An assignment, not an import, so that the documentation reads the comment
 # (autodoc finds "#:" comments on assignments in the module it documents).
@@ -37,6 +41,7 @@ __all__ = [
     "DEFAULT_GRADIENT_EPS",
     "FitInfo",
     "FitStatus",
+    "fit_orthogonal",
     "fit_rotation",
     "fit_rotation_info",
     "fit_rotation_reference",

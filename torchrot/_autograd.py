@@ -18,36 +18,45 @@ No gradient flows to ``init``: the maximiser does not depend on where the
 iteration starts. With a finite ``max_iter`` the derivative is that of the
 exact maximiser, evaluated at the returned R.
 
+The derivative operator is differentiable in turn, in X, R and M
+(torchrot/_tangent_derivative.py: the same damped map, differentiated
+exactly), so second (and higher) derivatives of fit_rotation work: double
+backward, gradgradcheck, torch.func.hessian and every nesting of jacrev,
+jacfwd, grad, vjp and jvp. Where the first derivative is finite, so are they.
+
 Registered here:
   * ``FitRotationFunction`` (forward-mode ``jvp``, generated vmap rule) as
     the Python Autograd kernel of ``torchrot::fit_rotation``, and
-    ``_TangentFunction`` (raising when differentiated) as that of
+    ``_TangentFunction`` (the same, differentiating the tangent) as that of
     ``torchrot::fit_rotation_backward`` (the operators' C++ Autograd kernels,
-    csrc/autograd.cpp, hand them the calls of torch.func, forward mode and
-    tracing): first derivatives in reverse and
+    csrc/autograd.cpp, hand them the calls of torch.func, forward mode,
+    tracing and create_graph): derivatives of every order in reverse and
     forward mode, under every torch.func transform and composition, in eager
     and under torch.compile (which traces the operator; :func:`torchrot.
-    fit_rotation` calls it); second derivatives raise;
+    fit_rotation` calls it). Each records at the torch.func level that calls
+    it and hands its own operations on to the levels below, which record
+    them in turn (``_at_levels_below``);
   * vmap rules for both operators, and autocast (CPU, CUDA) to float32.
 """
 from __future__ import annotations
+
+import contextlib
 
 import torch
 from torch.autograd import forward_ad
 
 from torchrot._constants import DEFAULT_VARIANT, GRADIENT_EPS
+from torchrot._tangent_derivative import tangent_jvp, tangent_vjp
 from torchrot._torch_private import (
     after_autograd_keyset,
     any_requires_grad,
     below_autograd,
-    differentiating_levels_below,
     enable_single_level_autograd_function,
     forward_grad_enabled,
+    forward_grad_mode,
     forward_level,
     functorch_front_excluded,
-    functorch_levels,
     functorch_transforms_active,
-    innermost_functorch_level,
     single_level_function,
     unwrap_dead_wrappers,
 )
@@ -64,31 +73,72 @@ def rotation_tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient
     return torch.ops.torchrot.fit_rotation_backward(X, R, M, gradient_eps)
 
 
-def _no_second_derivative(ctx, grad):
-    raise RuntimeError(
-        "torchrot.fit_rotation: second derivatives are not implemented (the derivative operator "
-        "fit_rotation_backward is not differentiable); a first-order gradient with create_graph=True "
-        "is fine, differentiating it again is not"
-    )
-
-
 class _TangentFunction(torch.autograd.Function):
-    """rotation_tangent, refusing to be differentiated in either mode, so that
-    second derivatives (e.g. torch.func.hessian, jacfwd(jacfwd(...)), forward
-    over reverse) raise instead of silently coming out as zeros."""
+    """rotation_tangent (the operator fit_rotation_backward) with its own
+    derivatives in X, R and M, in both modes (torchrot/_tangent_derivative.py):
+    the second derivatives of fit_rotation. The values are the operator's
+    kernels'; their derivatives are exact (autograd of the same damped map
+    in reverse mode, the map's derivative written out in forward mode) and
+    differentiable again."""
 
     generate_vmap_rule = True
 
     @staticmethod
     def forward(X, R, M, gradient_eps):
-        return rotation_tangent(X, R, M, gradient_eps)
+        return _at_levels_below(_BACKWARD_OP, X, R, M, gradient_eps)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        pass
+        ctx.save_for_backward(*inputs[:3])
+        ctx.save_for_forward(*inputs[:3])
+        ctx.gradient_eps = inputs[3]
 
-    backward = staticmethod(lambda ctx, grad: _no_second_derivative(ctx, grad))
-    jvp = staticmethod(lambda ctx, *tangents: _no_second_derivative(ctx, tangents))
+    @staticmethod
+    def backward(ctx, grad):
+        X, R, M = ctx.saved_tensors
+        grads = tangent_vjp(X, R, M, ctx.gradient_eps, grad)
+        return *(g if needed else None for g, needed in zip(grads, ctx.needs_input_grad)), None
+
+    @staticmethod
+    def jvp(ctx, dX, dR, dM, _gradient_eps):
+        X, R, M = ctx.saved_tensors
+        if not _inside_level():
+            return tangent_jvp(X, R, M, ctx.gradient_eps, dX, dR, dM)
+        with _recording_below(), below_autograd():  # as _at_levels_below
+            return tangent_jvp(X, R, M, ctx.gradient_eps, dX, dR, dM)
+
+
+def _inside_level() -> bool:
+    """Whether code runs inside an Autograd kernel called for one torch.func
+    level (the operators' Python Autograd kernels, below), where operations
+    reach the levels below only past the Autograd keys, and not in a
+    derivative rule that torch.func's own custom_function_call runs (its
+    operations go through every level as any call does)."""
+    return functorch_transforms_active() and functorch_front_excluded()
+
+
+def _recording_below() -> contextlib.AbstractContextManager:
+    """Inside an Autograd kernel called for one torch.func level (a
+    Function's forward or jvp rule, where both modes are off): the
+    operations record their derivatives at the levels below that one again,
+    as the transform would have them recorded (each level then restores the
+    grad modes it was entered with, as functorch's own single-level
+    Functions rely on). Elsewhere a no-op."""
+    if not _inside_level():
+        return contextlib.nullcontext()
+    stack = contextlib.ExitStack()
+    stack.enter_context(torch.enable_grad())
+    stack.enter_context(forward_grad_mode(True))
+    return stack
+
+
+def _at_levels_below(op, *args) -> torch.Tensor:
+    """``op(*args)`` past the operator's Autograd kernel at the current
+    level, from inside a derivative rule: outside torch.func straight to its
+    kernel, recording nothing; under torch.func on to the levels below, each
+    of which records the operator's derivatives for itself."""
+    with _recording_below(), below_autograd():
+        return op(*args)
 
 
 def _below_autograd(op, *args) -> torch.Tensor:
@@ -100,17 +150,17 @@ def _below_autograd(op, *args) -> torch.Tensor:
 
 
 def _tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: float) -> torch.Tensor:
-    """rotation_tangent inside a derivative rule, where it must never be
-    differentiated again.
+    """rotation_tangent inside a derivative rule of FitRotationFunction,
+    recorded wherever it may be differentiated again (second derivatives).
 
     Outside torch.func, the operator's Autograd kernel applies
     _TangentFunction itself wherever a derivative would be recorded
     (create_graph=True, reverse over forward). Under torch.func, a backward
     run by the transform's autograd call applies _TangentFunction at every
-    level. A jvp rule, though, runs inside the operator's Autograd kernel at
-    one level with both modes off, where neither the Function nor the
-    operator reaches the levels outside it (forward over forward came out
-    as zeros): if the tensors depend on such a differentiating level, raise.
+    level. A jvp rule, though, runs inside the operator's Autograd kernel for
+    one level with both modes off: there the operator goes on to the levels
+    below, with their modes restored, each of which records _TangentFunction
+    (forward over forward: jacfwd(jacfwd(...)), jvp(jvp(...))).
     """
     if not functorch_transforms_active():
         if not torch.is_grad_enabled():  # backward without create_graph: nothing to record
@@ -118,15 +168,7 @@ def _tangent(X: torch.Tensor, R: torch.Tensor, M: torch.Tensor, gradient_eps: fl
         return rotation_tangent(X, R, M, gradient_eps)
     if not functorch_front_excluded():
         return _TangentFunction.apply(X, R, M, gradient_eps)
-    if _differentiated_outside(innermost_functorch_level(), (X, R, M)):
-        _no_second_derivative(None, None)
-    return rotation_tangent(X, R, M, gradient_eps)
-
-
-def _differentiated_outside(level: int, tensors) -> bool:
-    """Whether a tensor is wrapped by a torch.func grad/jvp level below ``level``."""
-    outer = differentiating_levels_below(level)
-    return any(wrapper in outer for t in tensors for wrapper in functorch_levels(t))
+    return _at_levels_below(_BACKWARD_OP, X, R, M, gradient_eps)
 
 
 class FitRotationFunction(torch.autograd.Function):
@@ -142,10 +184,9 @@ class FitRotationFunction(torch.autograd.Function):
     @staticmethod
     def forward(M, init, max_iter, variant, gradient_eps):
         # Both derivative modes are off here: the operator runs below autograd
-        # (under torch.func through the dispatcher, for the levels below).
-        if not functorch_transforms_active():
-            return _below_autograd(_FIT_OP, M, init, max_iter, variant, gradient_eps)
-        return torch.ops.torchrot.fit_rotation(M, init, max_iter, variant, gradient_eps)
+        # (under torch.func through the dispatcher, for the levels below,
+        # which record it for themselves: second derivatives).
+        return _at_levels_below(_FIT_OP, M, init, max_iter, variant, gradient_eps)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
@@ -233,7 +274,6 @@ def _register_autograd(name: str, function: type[torch.autograd.Function]) -> No
 
 
 _register_autograd("fit_rotation", FitRotationFunction)
-# Differentiating the derivative raises instead of silently returning zeros.
 _register_autograd("fit_rotation_backward", _TangentFunction)
 
 

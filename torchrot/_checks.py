@@ -19,6 +19,7 @@ from torchrot._constants import MAX_GRADIENT_EPS, MAX_ITER, MESSAGES, SUPPORTED_
 __all__ = [
     "BACKWARD_NAME",
     "OP_NAME",
+    "ORTHOGONAL_NAME",
     "broadcast_shapes",
     "check_all",
     "check_backward",
@@ -34,10 +35,12 @@ __all__ = [
     "check_variant",
     "check_variant_type",
     "bad_init_error",
+    "not_orthogonal_error",
 ]
 
 OP_NAME = MESSAGES["OP_NAME"]
 BACKWARD_NAME = MESSAGES["BACKWARD_NAME"]
+ORTHOGONAL_NAME = MESSAGES["ORTHOGONAL_NAME"]
 
 
 def _message(key: str, op: str = OP_NAME, **fields) -> str:
@@ -106,21 +109,21 @@ def check_variant(variant, op: str = OP_NAME) -> None:
         raise ValueError(_message("VARIANT_VALUE", op, value=variant))
 
 
-def check_init(M: torch.Tensor, init: torch.Tensor | None) -> None:
-    check_matrix_arg(M, "M")
+def check_init(M: torch.Tensor, init: torch.Tensor | None, op: str = OP_NAME) -> None:
+    check_matrix_arg(M, "M", op)
     if init is None:
         return
-    check_matrix_arg(init, "init")
+    check_matrix_arg(init, "init", op)
     # any float dtype: a warm start of another precision is cast to M's compute dtype
     if init.device != M.device:
-        raise ValueError(_message("DEVICE_LIKE", name="init", ref="M", device=M.device, got=init.device))
+        raise ValueError(_message("DEVICE_LIKE", op, name="init", ref="M", device=M.device, got=init.device))
     batch, init_batch = M.shape[:-2], init.shape[:-2]
     try:
         ok = len(init_batch) <= len(batch) and broadcast_shapes(init_batch, batch) == batch
     except RuntimeError:
         ok = False
     if not ok:
-        raise ValueError(_message("INIT_BROADCAST", shape=list(init.shape), m_shape=list(M.shape)))
+        raise ValueError(_message("INIT_BROADCAST", op, shape=list(init.shape), m_shape=list(M.shape)))
 
 
 def has_overlapping_elements(t: torch.Tensor) -> bool:
@@ -146,35 +149,35 @@ def has_overlapping_elements(t: torch.Tensor) -> bool:
     return bool((ordered[1:] == ordered[:-1]).any())
 
 
-def check_out(M: torch.Tensor, out) -> None:
-    check_tensor(out, "out")
-    _check_like(out, "out", M, "M")
+def check_out(M: torch.Tensor, out, op: str = OP_NAME) -> None:
+    check_tensor(out, "out", op)
+    _check_like(out, "out", M, "M", op)
     if out.shape != M.shape:
-        raise ValueError(_message("OUT_SHAPE", m_shape=list(M.shape), shape=list(out.shape)))
+        raise ValueError(_message("OUT_SHAPE", op, m_shape=list(M.shape), shape=list(out.shape)))
     if has_overlapping_elements(out):
-        raise ValueError(_message("OUT_OVERLAP"))
+        raise ValueError(_message("OUT_OVERLAP", op))
     # (Not while dynamo traces, which cannot: the fake kernel checks it then.)
     if not torch.compiler.is_compiling() and out.is_inference() and not torch.is_inference_mode_enabled():
-        raise ValueError(_message("OUT_INFERENCE"))
+        raise ValueError(_message("OUT_INFERENCE", op))
 
 
-def check_out_autograd(M: torch.Tensor, out: torch.Tensor) -> None:
+def check_out_autograd(M: torch.Tensor, out: torch.Tensor, op: str = OP_NAME) -> None:
     """torch's rule for out= operators, which the operator's Autograd kernel
     applies (csrc/autograd.cpp): no call that would record a derivative."""
     reverse = torch.is_grad_enabled() and (M.requires_grad or out.requires_grad)
     if reverse or _has_tangent(M) or _has_tangent(out):
-        raise ValueError(_message("OUT_AUTOGRAD"))
+        raise ValueError(_message("OUT_AUTOGRAD", op))
 
 
 def _has_tangent(t: torch.Tensor) -> bool:
     return torch.autograd.forward_ad.unpack_dual(t).tangent is not None
 
 
-def check_all(M, init, max_iter, variant) -> None:
+def check_all(M, init, max_iter, variant, op: str = OP_NAME) -> None:
     """M and init, then max_iter and variant: the operator's order."""
-    check_init(M, init)
-    check_max_iter(max_iter)
-    check_variant(variant)
+    check_init(M, init, op)
+    check_max_iter(max_iter, op)
+    check_variant(variant, op)
 
 
 def check_gradient_eps_type(gradient_eps, op: str = OP_NAME) -> None:
@@ -191,6 +194,12 @@ def check_gradient_eps(gradient_eps, op: str = OP_NAME) -> None:
 def bad_init_error(bad: int, n: int) -> ValueError:
     """The error for ``bad`` of ``n`` warm starts that are not rotations."""
     return ValueError(_message("INIT_NOT_ROTATIONS", bad=bad, n=n))
+
+
+def not_orthogonal_error(bad: int, n: int, op: str) -> ValueError:
+    """The error for ``bad`` of ``n`` warm starts of an orthogonal fit that
+    are not orthogonal matrices."""
+    return ValueError(_message("INIT_NOT_ORTHOGONAL", op, bad=bad, n=n))
 
 
 def check_backward(grad, R, M, gradient_eps) -> None:

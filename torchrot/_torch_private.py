@@ -28,14 +28,12 @@ __all__ = [
     "any_requires_grad",
     "autocast_available",
     "below_autograd",
-    "differentiating_levels_below",
     "enable_single_level_autograd_function",
     "forward_grad_enabled",
+    "forward_grad_mode",
     "forward_level",
     "functorch_front_excluded",
-    "functorch_levels",
     "functorch_transforms_active",
-    "innermost_functorch_level",
     "is_functorch_wrapped",
     "is_non_overlapping_and_dense",
     "single_level_function",
@@ -53,7 +51,6 @@ forward_grad_enabled = torch._C._is_fwd_grad_enabled
 functorch_transforms_active = torch._C._are_functorch_transforms_active
 _FUNCTORCH = torch._C._functorch
 _FRONT_MODE = torch._C.DispatchKey.FuncTorchDynamicLayerFrontMode
-_DIFFERENTIATING = (_FUNCTORCH.TransformType.Grad, _FUNCTORCH.TransformType.Jvp)
 
 
 def _autocast_available_constant(device_type: str) -> bool:
@@ -80,6 +77,14 @@ def below_autograd() -> contextlib.AbstractContextManager:
     return torch._C._AutoDispatchBelowAutograd()
 
 
+def forward_grad_mode(enabled: bool) -> contextlib.AbstractContextManager:
+    """A context in which forward-mode AD records tangents (``enabled``) or
+    not, restoring the previous mode on exit (what torch.enable_grad is to
+    reverse mode; torch.func's own single-level Functions turn it back on the
+    same way)."""
+    return torch.autograd.forward_ad._set_fwd_grad_enabled(enabled)
+
+
 def forward_level() -> int:
     """The innermost open forward-AD dual level (-1: none), as
     ``torch.autograd.forward_ad.dual_level`` sets it (not torch.func.jvp's,
@@ -92,29 +97,6 @@ def functorch_front_excluded() -> bool:
     a transform's processing of an operator (an Autograd kernel or a jvp rule
     called for one level), not at the user's level."""
     return torch._C._dispatch_tls_is_dispatch_key_excluded(_FRONT_MODE)
-
-
-def innermost_functorch_level() -> int:
-    """The level of the innermost open torch.func transform."""
-    return _FUNCTORCH.peek_interpreter_stack().level()
-
-
-def differentiating_levels_below(level: int) -> set[int]:
-    """The levels below ``level`` of the open torch.func transforms that
-    differentiate (grad, vjp, jacrev: Grad; jvp, jacfwd: Jvp)."""
-    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
-
-    return {i.level() for i in retrieve_all_functorch_interpreters()
-            if i.key() in _DIFFERENTIATING and i.level() < level}
-
-
-def functorch_levels(t: torch.Tensor) -> list[int]:
-    """The torch.func levels whose grad or batch wrappers ``t`` is, outermost first."""
-    levels = []
-    while _FUNCTORCH.is_gradtrackingtensor(t) or _FUNCTORCH.is_batchedtensor(t):
-        levels.append(_FUNCTORCH.maybe_get_level(t))
-        t = _FUNCTORCH.get_unwrapped(t)
-    return levels
 
 
 def is_functorch_wrapped(t: torch.Tensor) -> bool:

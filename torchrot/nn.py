@@ -115,9 +115,12 @@ class RigidRegistration(nn.Module):
 
     Args:
         scale: also fit Umeyama's uniform scale (otherwise s = 1); a bool.
+        allow_reflection: fit the nearest orthogonal matrix (det +1 or -1),
+            :func:`torchrot.fit_orthogonal`, instead of the nearest rotation
+            (PyTorch3D's name); a bool.
 
     Raises:
-        TypeError: scale is not a bool.
+        TypeError: scale or allow_reflection is not a bool.
 
     Examples:
         >>> register = torchrot.nn.RigidRegistration(scale=True)
@@ -127,11 +130,14 @@ class RigidRegistration(nn.Module):
         (torch.Size([2, 3, 3]), torch.Size([2, 3]), tensor([3., 3.], dtype=torch.float64))
     """
 
-    def __init__(self, scale: bool = False) -> None:
+    def __init__(self, scale: bool = False, allow_reflection: bool = False) -> None:
         super().__init__()
         if not isinstance(scale, bool):
             raise TypeError(f"RigidRegistration: scale must be a bool, got {scale!r}")
+        if not isinstance(allow_reflection, bool):
+            raise TypeError(f"RigidRegistration: allow_reflection must be a bool, got {allow_reflection!r}")
         self.scale = scale
+        self.allow_reflection = allow_reflection
 
     def forward(self, x: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None, *,
                 init: torch.Tensor | None = None) -> RigidTransform:
@@ -142,8 +148,9 @@ class RigidRegistration(nn.Module):
             y: ``(..., N, 3)`` target points, x's N, dtype and device; batch
                 dimensions of x, y and weights broadcast.
             weights: optional ``(..., N)`` non-negative weights; ``None``: all ones.
-            init: optional ``(..., 3, 3)`` warm-start rotations broadcastable to
-                the batch (no gradient flows to it).
+            init: optional ``(..., 3, 3)`` warm-start rotations (orthogonal
+                matrices with ``allow_reflection``) broadcastable to the batch
+                (no gradient flows to it).
 
         Returns:
             :class:`torchrot.RigidTransform` ``(R, t, s)``: ``(..., 3, 3)``,
@@ -162,10 +169,10 @@ class RigidRegistration(nn.Module):
             >>> torch.allclose(R, torch.eye(3), atol=1e-5), torch.allclose(t, torch.zeros(3), atol=1e-5)
             (True, True)
         """
-        return rigid_registration(x, y, weights, scale=self.scale, init=init)
+        return rigid_registration(x, y, weights, scale=self.scale, init=init, allow_reflection=self.allow_reflection)
 
     def extra_repr(self) -> str:
-        return f"scale={self.scale}"
+        return f"scale={self.scale}, allow_reflection={self.allow_reflection}"
 
 
 def as_matrices(M: torch.Tensor) -> torch.Tensor:

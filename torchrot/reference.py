@@ -26,6 +26,7 @@ __all__ = [
     "fit_rotation_backward_reference",
     "fit_rotation_reference",
     "horn_matrix",
+    "orthogonal_svd",
     "quaternion_rotation",
     "rigid_registration_svd",
     "rotation_svd",
@@ -68,6 +69,36 @@ def rotation_svd(M: torch.Tensor) -> torch.Tensor:
     D = torch.ones(M.shape[:-1], dtype=M.dtype, device=M.device)
     D[..., 2] = d
     return (U * D.unsqueeze(-2)) @ Vh
+
+
+def orthogonal_svd(M: torch.Tensor) -> torch.Tensor:
+    """Orthogonal matrix maximising tr(Q^T M) by SVD: the polar factor Q = U V^T.
+
+    The reference of :func:`torchrot.fit_orthogonal` (det Q = +1 or -1, the
+    sign of det M), computed in M's dtype by ``torch.linalg.svd``: pass
+    float64 for a reference answer. Column-vector convention as
+    :func:`rotation_svd`.
+
+    Args:
+        M: ``(..., 3, 3)`` float32 or float64, any batch shape, on any device
+            ``torch.linalg.svd`` supports.
+
+    Returns:
+        ``(..., 3, 3)`` orthogonal matrices in M's dtype and on its device.
+
+    Raises:
+        TypeError: M is not a tensor, or not float32, float64, float16 or bfloat16.
+        ValueError: M's shape is not ``(..., 3, 3)``.
+
+    Examples:
+        >>> from torchrot.reference import orthogonal_svd
+        >>> F = torch.diag(torch.tensor([2.0, 1.0, -0.5], dtype=torch.float64))
+        >>> orthogonal_svd(F).diagonal().tolist()
+        [1.0, 1.0, -1.0]
+    """
+    check_matrix_arg(M, "M", op="torchrot.reference.orthogonal_svd")
+    U, _, Vh = torch.linalg.svd(M)
+    return U @ Vh
 
 
 def rigid_registration_svd(x: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None,

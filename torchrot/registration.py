@@ -14,8 +14,9 @@ p_i = w_i / sum_j w_j and the weighted centroids x̄ = sum p_i x_i, ȳ = sum p_i
     s   = tr(R^T M) / sum_i p_i ||x_i - x̄||^2      (Umeyama's scale; 1 if scale=False)
     t   = ȳ - s R x̄
 
-R comes from :func:`torchrot.fit_rotation`, so the whole map is differentiable in
-x, y and the weights wherever fit_rotation is.
+R comes from :func:`torchrot.fit_rotation` (or, with ``allow_reflection=True``,
+the orthogonal matrix of :func:`torchrot.fit_orthogonal`), so the whole map is
+differentiable in x, y and the weights wherever those are.
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ from torchrot._checks import broadcast_shapes
 from torchrot._constants import SUPPORTED_DTYPES
 from torchrot._torch_private import autocast_available, is_functorch_wrapped
 from torchrot.fitting import fit_rotation
+from torchrot.orthogonal import fit_orthogonal
 
 __all__ = ["MIN_POINTS", "RigidTransform", "rigid_registration"]
 
@@ -40,7 +42,8 @@ class RigidTransform(NamedTuple):
     """Result of :func:`rigid_registration`: ``y ~ s R x + t`` (column vectors).
 
     Attributes:
-        R: ``(..., 3, 3)`` rotations (det +1).
+        R: ``(..., 3, 3)`` rotations (det +1); orthogonal matrices (det +1 or
+            -1) with ``allow_reflection=True``.
         t: ``(..., 3)`` translations.
         s: ``(...)`` scales (ones when ``scale=False``).
 
@@ -67,6 +70,7 @@ def rigid_registration(
     *,
     scale: bool = False,
     init: torch.Tensor | None = None,
+    allow_reflection: bool = False,
 ) -> RigidTransform:
     """Rigid (or similarity) transform minimising ``sum_i w_i ||s R x_i + t - y_i||^2``.
 
@@ -90,7 +94,15 @@ def rigid_registration(
             bfloat16), forwarded to :func:`torchrot.fit_rotation` as its warm
             start (e.g. the previous frame's R), which checks that they are
             rotations and brings them to the compute precision. No gradient
-            flows to init.
+            flows to init. With ``allow_reflection=True``: orthogonal matrices,
+            forwarded to :func:`torchrot.fit_orthogonal`.
+        allow_reflection: fit the orthogonal matrix (det +1 or -1) nearest to
+            M, :func:`torchrot.fit_orthogonal`, instead of the rotation: a
+            reflected y is then matched by a reflection (PyTorch3D's
+            ``corresponding_points_alignment(..., allow_reflection=True)``),
+            and s is ``tr(R^T M)``, the sum of M's singular values, over the
+            same variance. ``False`` (the default): the Kabsch/Umeyama
+            rotation.
 
     Returns:
         :class:`RigidTransform` ``(R, t, s)`` with R ``(..., 3, 3)``, t
@@ -104,11 +116,12 @@ def rigid_registration(
     Raises:
         TypeError: x, y, weights or init not a tensor, not float32/float64/
             float16/bfloat16, or x, y and weights of different dtypes; scale
-            not a bool.
+            or allow_reflection not a bool.
         ValueError: shapes other than ``(..., N, 3)`` / ``(..., N)`` /
             ``(..., 3, 3)``, different N, batch dimensions that do not
             broadcast, tensors on different devices; negative weights; init
-            that is not a rotation (from fit_rotation); a problem with fewer than 3 points of
+            that is not a rotation (from fit_rotation; with allow_reflection,
+            not orthogonal, from fit_orthogonal); a problem with fewer than 3 points of
             nonzero weight (all-zero weights included); with ``scale=True``, a
             problem whose weighted points all coincide (s undefined). The value
             checks are skipped inside torch.compile and torch.func transforms,
@@ -130,8 +143,16 @@ def rigid_registration(
         >>> weights[:3] = 0.0
         >>> torch.allclose(torchrot.rigid_registration(x, y_outliers, weights).R, R_true)
         True
+
+        A mirror image is matched by a reflection only where that is allowed:
+
+        >>> mirror = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64))
+        >>> round(torchrot.rigid_registration(x, x @ mirror).R.det().item(), 6)
+        1.0
+        >>> torch.allclose(torchrot.rigid_registration(x, x @ mirror, allow_reflection=True).R, mirror)
+        True
     """
-    _check_arguments(x, y, weights, scale, init)
+    _check_arguments(x, y, weights, scale, init, allow_reflection)
     if _values_readable(x, y, weights):
         _check_point_counts(x, weights)
     dtype = x.dtype
@@ -149,13 +170,13 @@ def rigid_registration(
         if compute != dtype:
             x, y = x.to(compute), y.to(compute)
             weights = None if weights is None else weights.to(compute)
-        R, t, s = _solve(x, y, weights, scale, init)
+        R, t, s = _solve(x, y, weights, scale, init, allow_reflection)
     if compute != dtype:  # (Tensor.to has a cost even where it returns its tensor)
         R, t, s = R.to(dtype), t.to(dtype), s.to(dtype)
     return RigidTransform(R, t, s)
 
 
-def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _solve(x, y, weights, scale: bool, init, allow_reflection: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Umeyama's closed form; shapes as in :func:`rigid_registration`.
 
     The points are first copied to coordinate rows, ``(..., 3, N)``, so that the
@@ -167,7 +188,9 @@ def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor
     x_rows = x.mT.contiguous()  # (..., 3, N)
     y_rows = y.mT.contiguous()
     if weights is None:
-        p = torch.full((x.shape[-2],), 1.0 / x.shape[-2], dtype=x.dtype, device=x.device)
+        # (x.new_full: a DTensor x makes it a replicated DTensor, which the
+        # products with x's sharded batch accept; torch.full would not mix.)
+        p = x.new_full((x.shape[-2],), 1.0 / x.shape[-2])
     else:
         p = _normalized_weights(weights)
     p_row = p.unsqueeze(-2)  # (..., 1, N)
@@ -178,15 +201,15 @@ def _solve(x, y, weights, scale: bool, init) -> tuple[torch.Tensor, torch.Tensor
     xc_weighted = xc * p_row
     # M = sum_i p_i yc_i xc_i^T: (..., 3, N) @ (..., N, 3).
     M = _matmul(yc, xc_weighted.mT)
-    R = fit_rotation(M, init)
+    R = (fit_orthogonal if allow_reflection else fit_rotation)(M, init)
     if scale:
         variance_x = (xc_weighted * xc).sum((-2, -1))  # sum_i p_i |xc_i|^2
         # sum_i p_i |x_i|^2 = variance_x + |x̄|^2 (without another pass over the points)
         _check_spread(variance_x, variance_x + x_mean.square().sum((-2, -1)))
-        # tr(R^T M) at the maximum: the (sign-corrected) sum of M's singular values.
+        # tr(R^T M) at the maximum: the sum of M's singular values (sign-corrected for a rotation).
         s = (R * M).sum((-2, -1)) / variance_x
     else:
-        s = torch.ones(M.shape[:-2], dtype=M.dtype, device=M.device)
+        s = torch.ones_like(M[..., 0, 0])  # M's batch shape (and a DTensor M's placements)
     t = (y_mean - s[..., None, None] * _matmul(R, x_mean)).squeeze(-1)
     return R, t, s
 
@@ -213,7 +236,7 @@ def _matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return a @ b
 
 
-def _check_arguments(x, y, weights, scale, init) -> None:
+def _check_arguments(x, y, weights, scale, init, allow_reflection) -> None:
     for name, value in (("x", x), ("y", y)):
         if not isinstance(value, torch.Tensor):
             raise TypeError(f"{_NAME}: {name} must be a torch.Tensor, got {type(value).__name__}")
@@ -248,6 +271,8 @@ def _check_arguments(x, y, weights, scale, init) -> None:
         raise ValueError(f"{_NAME}: the batch dimensions must broadcast, got {shapes}") from None
     if not isinstance(scale, bool):
         raise TypeError(f"{_NAME}: scale must be a bool, got {scale!r}")
+    if not isinstance(allow_reflection, bool):
+        raise TypeError(f"{_NAME}: allow_reflection must be a bool, got {allow_reflection!r}")
     if init is not None:
         _check_init(init, x, batch)
 

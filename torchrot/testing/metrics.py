@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from torchrot.reference import rotation_svd
+from torchrot.reference import orthogonal_svd, rotation_svd
 
-__all__ = ['dtype_id', 'bits', 'objective', 'rotation_errors', 'CRITERIA', 'conditioning']
+__all__ = ['dtype_id', 'bits', 'objective', 'rotation_errors', 'orthogonal_errors', 'CRITERIA', 'conditioning']
 
 
 def dtype_id(dtype: torch.dtype) -> str:
@@ -94,6 +94,40 @@ def rotation_errors(R: torch.Tensor, M: torch.Tensor) -> dict[str, torch.Tensor]
         "distance": (Rd - R_star).norm(dim=(-2, -1)),
     }
 
+def orthogonal_errors(Q: torch.Tensor, M: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per-matrix accuracy of orthogonal matrices Q fitted to M
+    (:func:`torchrot.fit_orthogonal`), against the float64 SVD's polar factor.
+
+    Args:
+        Q: ``(..., 3, 3)`` fitted orthogonal matrices, any float dtype.
+        M: ``(..., 3, 3)`` the matrices they were fitted to, Q's batch shape.
+
+    Returns:
+        dict[str, torch.Tensor]: float64 tensors of M's batch shape, the keys
+        of :func:`rotation_errors`: ``"orthonormality"``; ``"det"``,
+        ``||det Q| - 1|``; ``"shortfall"``, ``(tr(Q*^T M) - tr(Q^T M)) /
+        |M|_F`` with Q* = U V^T the float64 polar factor; ``"distance"``,
+        ``|Q - Q*|_F`` (meaningful only where M is nonsingular).
+
+    Examples:
+        >>> from torchrot.testing import CRITERIA, make_matrices, orthogonal_errors
+        >>> M = make_matrices("det_negative", 100)
+        >>> errors = orthogonal_errors(torchrot.fit_orthogonal(M), M)
+        >>> all(bool(errors[key].max() <= limit) for key, limit in CRITERIA[torch.float64].items())
+        True
+    """
+    Qd, Md = Q.double(), M.double()
+    eye = torch.eye(3, dtype=torch.float64)
+    Q_star = orthogonal_svd(Md)
+    norm = Md.norm(dim=(-2, -1))
+    safe = torch.where(norm > 0, norm, torch.ones_like(norm))
+    return {
+        "orthonormality": (Qd.mT @ Qd - eye).abs().amax((-2, -1)),
+        "det": (torch.linalg.det(Qd).abs() - 1).abs(),
+        "shortfall": (objective(Q_star, Md) - objective(Qd, Md)) / safe,
+        "distance": (Qd - Q_star).norm(dim=(-2, -1)),
+    }
+
 #: Acceptance criteria per dtype (issue #2): max orthonormality / det error
 #: and max relative objective shortfall.
 CRITERIA = {
@@ -101,7 +135,7 @@ CRITERIA = {
     torch.float64: {"orthonormality": 1e-13, "det": 1e-13, "shortfall": 1e-12},
 }
 
-def conditioning(M: torch.Tensor) -> torch.Tensor:
+def conditioning(M: torch.Tensor, orthogonal: bool = False) -> torch.Tensor:
     """Per matrix, how much rounding can move the fitted rotation:
     ``|M|_F / min(s_i + s_j)`` over the signed singular values s of M (the
     eigenvalues of the optimality system, csrc/kernel/rotation_gradient.h;
@@ -110,6 +144,12 @@ def conditioning(M: torch.Tensor) -> torch.Tensor:
 
     Args:
         M: ``(..., 3, 3)`` any float dtype (computed in float64).
+        orthogonal: the conditioning of the orthogonal fit
+            (:func:`torchrot.fit_orthogonal`) instead: ``|M|_F / s_3``, s_3
+            the smallest singular value (Inf where M is singular). Its pair
+            sums are unsigned, so its derivative's system is no worse than
+            this, and rounding that flips the sign of det M (where s_3 is of
+            the order of rounding) moves the fit by 2.
 
     Returns:
         float64 tensor of M's batch shape ``(...)``: positive, or Inf.
@@ -118,9 +158,13 @@ def conditioning(M: torch.Tensor) -> torch.Tensor:
         >>> from torchrot.testing import conditioning
         >>> conditioning(torch.stack([torch.eye(3), torch.diag(torch.tensor([1.0, 1.0, -1.0]))]))
         tensor([0.8660,    inf], dtype=torch.float64)
+        >>> conditioning(torch.diag(torch.tensor([1.0, 1.0, -1.0])), orthogonal=True)
+        tensor(1.7321, dtype=torch.float64)
     """
     M = M.double()
     s = torch.linalg.svdvals(M)
+    if orthogonal:
+        return M.norm(dim=(-2, -1)) / s[..., 2]
     s[..., 2] = s[..., 2] * torch.linalg.det(M).sign()
     pair_sums = torch.stack([s[..., 0] + s[..., 1], s[..., 0] + s[..., 2], s[..., 1] + s[..., 2]], -1)
     return M.norm(dim=(-2, -1)) / pair_sums.amin(-1).clamp_min(0)
