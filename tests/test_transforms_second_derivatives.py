@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-from torch.func import grad, hessian, jacfwd, jacrev, jvp, vjp, vmap
 from kernel_paths import KERNEL_PATHS, kernel_path_params
+from torch.func import grad, hessian, jacfwd, jacrev, jvp, vjp, vmap
 from transforms_helpers import BACKEND
 
 import torchrot

@@ -20,7 +20,7 @@ __all__ = [
     "GRADIENT_EPS", "INIT_CLEAN", "INIT_CLEAN_EPS", "INIT_CLEAN_STEPS", "INIT_TOLERANCE", "MAX_CHECK_SLACK_EPS",
     "LARGE_STEP", "MAX_ESCAPES", "MAX_GRADIENT_EPS", "MAX_ITER", "MESSAGES", "OBJECTIVE_LAGUERRE_STEPS",
     "STEPS_WITHOUT_CLEAN_UP", "SUPPORTED_DTYPES",
-    "UNDAMPED", "VARIANTS", "dtype_name",
+    "UNDAMPED", "VARIANTS", "compute_dtype", "dtype_name",
 ]
 
 _CONSTANTS = _C.constants()
@@ -92,3 +92,10 @@ def dtype_name(dtype: torch.dtype) -> str:
     """"float32" for torch.float32: the key of the per-dtype tables above
     (INIT_CLEAN, UNDAMPED: the kernel's Tolerances<T>)."""
     return str(dtype).removeprefix("torch.")
+
+
+def compute_dtype(dtype: torch.dtype) -> torch.dtype:
+    """The dtype a fit of ``dtype`` matrices computes in: float16 and bfloat16
+    in float32 (results are rounded back to their dtype), others in their own;
+    the Python twin of the C++ operators' ``compute_dtype`` (csrc/ops/layout.h)."""
+    return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import torch
 
+from torchrot._constants import compute_dtype
+
 __all__ = ["det_negative"]
 
 
@@ -37,8 +39,7 @@ def det_negative(M: torch.Tensor) -> torch.Tensor:
         ``(...)`` bool tensor on M's device.
     """
     A = M.detach()
-    if A.dtype in (torch.float16, torch.bfloat16):
-        A = A.float()
+    A = A.to(compute_dtype(A.dtype))
     # Scaled by the largest entry (any positive factor keeps the sign), so that
     # the elimination can neither overflow nor lose the matrix to underflow.
     scale = A.abs().amax((-2, -1), keepdim=True)

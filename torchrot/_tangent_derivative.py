@@ -35,12 +35,14 @@ from __future__ import annotations
 
 import torch
 
+from torchrot._constants import compute_dtype
+
 __all__ = ["tangent_jvp", "tangent_value", "tangent_vjp"]
 
 
 def _compute(*tensors: torch.Tensor) -> list[torch.Tensor]:
     """The tensors in their compute dtype (float16/bfloat16: float32)."""
-    return [t.float() if t.dtype in (torch.float16, torch.bfloat16) else t for t in tensors]
+    return [t.to(compute_dtype(t.dtype)) for t in tensors]
 
 
 def _matvec(A: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

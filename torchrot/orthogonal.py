@@ -30,14 +30,13 @@ from torchrot._checks import (
     check_variant_type,
     not_orthogonal_error,
 )
-from torchrot._constants import DEFAULT_VARIANT, INIT_TOLERANCE
+from torchrot._constants import DEFAULT_VARIANT, INIT_TOLERANCE, compute_dtype
 from torchrot._det_sign import det_negative
 from torchrot._torch_private import is_functorch_wrapped
 from torchrot.fitting import fit_rotation
 
 __all__ = ["fit_orthogonal"]
 
-_REDUCED = (torch.float16, torch.bfloat16)
 
 
 def fit_orthogonal(
@@ -185,7 +184,7 @@ def _values_readable(init: torch.Tensor, compiling: bool) -> bool:
 def _check_orthogonal(init: torch.Tensor, dtype: torch.dtype) -> None:
     """Every finite warm start is orthogonal (|Q^T Q - I|_F < INIT_TOLERANCE,
     in M's compute dtype, as the rotation fit measures it); one host read."""
-    compute = torch.float32 if dtype in _REDUCED else dtype
+    compute = compute_dtype(dtype)
     Q = init.detach().to(compute)
     # |Q^T Q - I|_F^2 = |Q^T Q|_F^2 - 2 |Q|_F^2 + 3, without an identity
     # tensor (which a DTensor init would not mix with).

@@ -26,7 +26,7 @@ from typing import NamedTuple
 import torch
 
 from torchrot._checks import broadcast_shapes
-from torchrot._constants import SUPPORTED_DTYPES
+from torchrot._constants import SUPPORTED_DTYPES, compute_dtype
 from torchrot._torch_private import autocast_available, is_functorch_wrapped
 from torchrot.fitting import fit_rotation
 from torchrot.orthogonal import fit_orthogonal
@@ -34,7 +34,6 @@ from torchrot.orthogonal import fit_orthogonal
 __all__ = ["MIN_POINTS", "RigidTransform", "rigid_registration"]
 
 _NAME = "torchrot.rigid_registration"
-_COMPUTE_IN_FLOAT32 = (torch.float16, torch.bfloat16)
 MIN_POINTS = 3
 
 
@@ -156,7 +155,7 @@ def rigid_registration(
     if _values_readable(x, y, weights):
         _check_point_counts(x, weights)
     dtype = x.dtype
-    compute = torch.float32 if dtype in _COMPUTE_IN_FLOAT32 else dtype
+    compute = compute_dtype(dtype)
     # Autocast would run the covariance products in bf16; they need the input
     # precision. (Devices without autocast, such as meta, have none to turn off:
     # torch.autocast raises for them. Entering it is a noticeable part of a

@@ -17,7 +17,7 @@ import math
 
 import torch
 
-from torchrot._constants import INIT_CLEAN, FitStatus, dtype_name
+from torchrot._constants import INIT_CLEAN, FitStatus, compute_dtype, dtype_name
 from torchrot.generic.cold_start import best_start_rotation
 from torchrot.generic.control_flow import _compiling
 from torchrot.generic.lanes import max_abs_entry, select
@@ -36,7 +36,6 @@ __all__ = [
     "fit_rotation_backward_generic",
     "_components",
     "_warm_start_components",
-    "_compute_dtype",
     "_fit_core",
 ]
 
@@ -73,15 +72,11 @@ def _warm_start_components(init, compute):
     return I, G, finite, bad, dev2
 
 
-def _compute_dtype(dtype):
-    return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
-
-
 def _fit_core(M, init, max_iter, variant, warm=None):
     """(R, iterations, status) for M: the whole algorithm as tensor operations
     (no host read when compiled; see torchrot.generic.control_flow). ``warm``:
     init's _warm_start_components if the caller has them already."""
-    compute = _compute_dtype(M.dtype)
+    compute = compute_dtype(M.dtype)
     shape = M.shape
     batch = shape[:-2]
     n = math.prod(batch)
@@ -124,7 +119,7 @@ def fit_rotation_generic(M, init, max_iter, variant, return_info, bad_init_error
     traced, where such lanes come back NaN with status STATUS_BAD_INIT)."""
     warm = None
     if init is not None and M.device.type != "meta" and not _compiling():
-        warm = _warm_start_components(init, _compute_dtype(M.dtype))
+        warm = _warm_start_components(init, compute_dtype(M.dtype))
         init_bad = warm[3]
         if bool(init_bad.any()):
             raise bad_init_error(int(init_bad.sum()), init_bad.numel())  # counted in init's own shape
@@ -135,7 +130,7 @@ def fit_rotation_generic(M, init, max_iter, variant, return_info, bad_init_error
 def fit_rotation_backward_generic(grad, R, M, gradient_eps):
     """The body of fit_rotation_backward_reference (arguments already checked)."""
     out_dtype = R.dtype
-    compute = _compute_dtype(R.dtype)
+    compute = compute_dtype(R.dtype)
     shape = R.shape
     n = math.prod(shape[:-2])
     Gc = _components(grad.to(compute), n)

@@ -17,14 +17,14 @@ import torch
 import triton
 import triton.language as tl
 
-from torchrot._constants import CONVERGED_CAP, MAX_ESCAPES, FitStatus
+from torchrot._constants import CONVERGED_CAP, MAX_ESCAPES, FitStatus, compute_dtype
 from torchrot.triton.block_io import block_lanes, load_block, store_block, store_lanes
 from torchrot.triton.fit_rotation_impl import advance, advance_one_step, begin_fit, constexprs_for, finish
 from torchrot.triton.optimality import check_warm_start, used_as_is
 
 __all__ = ["BLOCK", "STEP_CAP", "COMPILE_OPTIONS", "fit_batch", "count_bad_warm_starts", "fit_batch_kernel",
            "count_bad_warm_starts_kernel", "fit_batch_constexprs", "count_bad_warm_starts_constexprs",
-           "compute_dtype", "triton_dtype"]
+           "triton_dtype"]
 
 #: Matrices per program (lanes of a block): a power of two. Each lane holds
 #: M's scaled copy, R and a step's temporaries in registers.
@@ -101,11 +101,6 @@ def count_bad_warm_starts_kernel(init_ptr, stride_n, stride_r, stride_c, counts_
     unclean = ~used_as_is(finite, bad, deviation2, INIT_CLEAN2)
     tl.atomic_add(counts_ptr, tl.sum((bad & mask).to(tl.int64), 0))
     tl.atomic_add(counts_ptr + 1, tl.sum((unclean & mask).to(tl.int64), 0))
-
-
-def compute_dtype(dtype: torch.dtype) -> torch.dtype:
-    """The dtype a fit of ``dtype`` computes in (float16, bfloat16: float32)."""
-    return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
 
 
 def triton_dtype(dtype: torch.dtype):

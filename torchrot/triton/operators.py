@@ -20,13 +20,13 @@ import math
 import torch
 
 from torchrot._checks import bad_init_error, check_all, check_backward, check_gradient_eps, check_out
-from torchrot._constants import DEFAULT_VARIANT, GRADIENT_EPS, FitStatus
+from torchrot._constants import DEFAULT_VARIANT, GRADIENT_EPS, FitStatus, compute_dtype
 from torchrot._layout import empty_result
 from torchrot.generic.driver import _components
 from torchrot.generic.horn_fallback import horn_rotation
 from torchrot.generic.lanes import max_abs_entry
 from torchrot.generic.unit_scale import unit_scale
-from torchrot.triton.fit_rotation_kernel import compute_dtype, count_bad_warm_starts, fit_batch
+from torchrot.triton.fit_rotation_kernel import count_bad_warm_starts, fit_batch
 from torchrot.triton.rotation_gradient_kernel import tangent_batch
 
 __all__ = ["TRITON_KERNELS"]

@@ -9,9 +9,10 @@ import torch
 import triton
 import triton.language as tl
 
+from torchrot._constants import compute_dtype
 from torchrot.triton.block_io import block_lanes, load_block, store_block
 from torchrot.triton.fit_rotation_impl import constexprs_for
-from torchrot.triton.fit_rotation_kernel import BLOCK, COMPILE_OPTIONS, compute_dtype, triton_dtype
+from torchrot.triton.fit_rotation_kernel import BLOCK, COMPILE_OPTIONS, triton_dtype
 from torchrot.triton.rotation_gradient import rotation_tangent
 
 __all__ = ["tangent_batch", "tangent_batch_kernel", "tangent_batch_constexprs"]
