@@ -82,16 +82,21 @@ def rotation_errors(R: torch.Tensor, M: torch.Tensor) -> dict[str, torch.Tensor]
         >>> all(bool(errors[key].max() <= limit) for key, limit in CRITERIA[torch.float32].items())
         True
     """
-    Rd, Md = R.double(), M.double()
+    Md = M.double()
+    return _errors_against(R.double(), Md, rotation_svd(Md), lambda det: (det - 1).abs())
+
+
+def _errors_against(X: torch.Tensor, M: torch.Tensor, X_star: torch.Tensor, det_error) -> dict[str, torch.Tensor]:
+    """The keys of :func:`rotation_errors` for float64 fits X of M against
+    the SVD's X_star, ``det_error(det X)`` the determinant's."""
     eye = torch.eye(3, dtype=torch.float64)
-    R_star = rotation_svd(Md)
-    norm = Md.norm(dim=(-2, -1))
+    norm = M.norm(dim=(-2, -1))
     safe = torch.where(norm > 0, norm, torch.ones_like(norm))
     return {
-        "orthonormality": (Rd.mT @ Rd - eye).abs().amax((-2, -1)),
-        "det": (torch.linalg.det(Rd) - 1).abs(),
-        "shortfall": (objective(R_star, Md) - objective(Rd, Md)) / safe,
-        "distance": (Rd - R_star).norm(dim=(-2, -1)),
+        "orthonormality": (X.mT @ X - eye).abs().amax((-2, -1)),
+        "det": det_error(torch.linalg.det(X)),
+        "shortfall": (objective(X_star, M) - objective(X, M)) / safe,
+        "distance": (X - X_star).norm(dim=(-2, -1)),
     }
 
 def orthogonal_errors(Q: torch.Tensor, M: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -116,17 +121,8 @@ def orthogonal_errors(Q: torch.Tensor, M: torch.Tensor) -> dict[str, torch.Tenso
         >>> all(bool(errors[key].max() <= limit) for key, limit in CRITERIA[torch.float64].items())
         True
     """
-    Qd, Md = Q.double(), M.double()
-    eye = torch.eye(3, dtype=torch.float64)
-    Q_star = orthogonal_svd(Md)
-    norm = Md.norm(dim=(-2, -1))
-    safe = torch.where(norm > 0, norm, torch.ones_like(norm))
-    return {
-        "orthonormality": (Qd.mT @ Qd - eye).abs().amax((-2, -1)),
-        "det": (torch.linalg.det(Qd).abs() - 1).abs(),
-        "shortfall": (objective(Q_star, Md) - objective(Qd, Md)) / safe,
-        "distance": (Qd - Q_star).norm(dim=(-2, -1)),
-    }
+    Md = M.double()
+    return _errors_against(Q.double(), Md, orthogonal_svd(Md), lambda det: (det.abs() - 1).abs())
 
 #: Acceptance criteria per dtype (issue #2): max orthonormality / det error
 #: and max relative objective shortfall.
