@@ -217,6 +217,7 @@ def main() -> None:
         seconds = interleaved_median_seconds(_calls(kernels, M, init), args.rounds, args.min_time)
         load = Load.around(before)
     ns = {name: s / n * 1e9 for name, s in seconds.items()}
+    print(f"# The paper authors' kernels beside torchrot\n\nMachine: {machine_info()}\n")
     print(f"N = {n:,} float32 matrices ({args.data}), 1 thread, medians of {args.rounds} interleaved rounds "
           f"(torchrot kernel {machine_info()['torchrot_kernel']}, the authors' built with -march={args.march}"
           f"{'; subnormal numbers flushed to zero' if args.flush_denormal else ''}); "
