@@ -275,9 +275,9 @@ TORCHROT_INLINE void advance_one_step(LaneState<L>& s, Variant variant, const ty
 
 // begin_fit and advance_one_step for a warm start (the paper's one-step
 // update), with M and init read from memory where they are used instead of
-// held in registers: m and r hold the block structure-of-arrays (entry k of
-// its L::width matrices at m + k * L::width) in buffers of the caller's, and
-// r is overwritten with the result. The same operations as those two, so the
+// held in registers: m(k) and r(k) load entry k (row-major) of the block's M
+// and init (memory that nothing writes while this runs), and the result is
+// written to q (entry k at q + k * L::width). The same operations as those two, so the
 // same results bit for bit; then calls done(state), in each of its two paths,
 // so that the state is built after the reads (passed out by reference or
 // returned, GCC kept the whole state in memory or copied it).
@@ -289,19 +289,19 @@ TORCHROT_INLINE void advance_one_step(LaneState<L>& s, Variant variant, const ty
 // is read once for its largest entry, S is built up over the rows of R0 and A
 // = M / max (transpose_times_by_rows: one row of each at a time besides S's
 // nine partial sums), and R0 is read again for the update, a row at a time
-// (with the 9 entries of K = Q - I). Blocks with lanes that begin_fit treats
+// (with the 9 entries of K = Q - I) into q. Blocks with lanes that begin_fit treats
 // apart (a largest entry outside the normal range, M = 0 included, or a warm
 // start to clean up; rare) take the general path.
-template <typename L, typename Done>
-TORCHROT_INLINE void one_step_warm_from_memory(const typename L::Scalar* m, typename L::Scalar* r,
-                                               bool init_known_clean, Variant variant, Done done) {
+template <typename L, typename LoadM, typename LoadR, typename Done>
+TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Scalar* q, bool init_known_clean,
+                                               Variant variant, Done done) {
   using T = typename L::Scalar;
   using V = typename L::V;
   using Mask = typename L::Mask;
   using Tol = Tolerances<T>;
-  const auto load = [](const T* p) {
+  const auto load = [](auto entry) {
     Mat3<V> X;
-    for (int k = 0; k < 9; ++k) X.a[k] = L::load(p + k * L::width);
+    for (int k = 0; k < 9; ++k) X.a[k] = entry(k);
     return X;
   };
   const V max_abs = max_abs_entry<L>(load(m));
@@ -327,8 +327,8 @@ TORCHROT_INLINE void one_step_warm_from_memory(const typename L::Scalar* m, type
   TORCHROT_MEMORY_BARRIER();     // M and R0 are read again below, row by row
   const Mat3<V> S = transpose_times_by_rows<V>([&](int k, V a[3], V b[3]) {
     for (int c = 0; c < 3; ++c) {
-      a[c] = L::load(r + (3 * k + c) * L::width);        // R0(k, c): row k of R0
-      b[c] = L::load(m + (3 * k + c) * L::width) * inv;  // A(k, c)
+      a[c] = r(3 * k + c);        // R0(k, c): row k of R0
+      b[c] = m(3 * k + c) * inv;  // A(k, c)
     }
   });
   const CayleyStep<V> step = cayley_step(S, objective_estimate<L>(S, variant));
@@ -340,16 +340,16 @@ TORCHROT_INLINE void one_step_warm_from_memory(const typename L::Scalar* m, type
   TORCHROT_MEMORY_BARRIER();
   for (int i = 0; i < 3; ++i) {
     V row[3], rotated[3];
-    for (int c = 0; c < 3; ++c) row[c] = L::load(r + (3 * i + c) * L::width);
+    for (int c = 0; c < 3; ++c) row[c] = r(3 * i + c);
     rotate_row_by(row, K, rotated);
-    for (int c = 0; c < 3; ++c) L::store(L::select(stepping, rotated[c], row[c]), r + (3 * i + c) * L::width);
+    for (int c = 0; c < 3; ++c) L::store(L::select(stepping, rotated[c], row[c]), q + (3 * i + c) * L::width);
   }
   TORCHROT_MEMORY_BARRIER();
   // begin_fit's state for these lanes (no M = 0: those are apart), set after
   // the barriers (which would otherwise keep it in memory). s.A, read only by
   // fallback lanes, which one step never makes, is left unset.
   LaneState<L> s;
-  s.R = load(r);
+  for (int k = 0; k < 9; ++k) s.R.a[k] = L::load(q + k * L::width);
   s.iterations = s.attempt_steps = s.escapes = V(0);
   s.switched = s.fallback = s.large_step = L::all_false();
   s.bad_init = bad_init;
