@@ -20,6 +20,18 @@ _FUNCTION = re.compile(r"^(?:template <[^\n]*>\n)?"
 
 _FUSED = "torch's operations round every product and sum: nothing to fuse"
 _LANE_ACCESS = "tensors index their lanes directly"
+# Helpers of the AVX2 one-step kernel's register schedule (csrc/kernel/fit_rotation_impl.h,
+# one_step_warm_from_memory): the same values as the functions they split up.
+_SCHEDULE = {
+    "mat3.h": {"transpose_times_by_rows": "transpose_times in another order of evaluation (same roundings)"},
+    "cayley.h": {"rotate_row_by": "rotate_by, one row at a time"},
+    "optimality.h": {"needs_cleaning": "clean_warm_start's mask of the lanes it changes"},
+    "fit_rotation_impl.h": {
+        "count_step": "take_step's bookkeeping",
+        "one_step_warm_from_memory": "begin_fit and advance_one_step reading M and init from memory where "
+                                     "they are used (16 vector registers): the same values",
+    },
+}
 #: mirror -> {header: {function: why it has no twin}} ("*": the whole header).
 NO_TWIN = {
     "generic": {
@@ -31,7 +43,9 @@ NO_TWIN = {
             "begin_fit": "driver._fit_core begins the fit on whole tensors (normalisation, start)",
             "advance_one_step": "the one-step update is advance with max_iter = 1 (schedule.fit_soa)",
             "solve_fallback_lanes": "finish solves the fallback lanes (a masked update)",
+            **_SCHEDULE["fit_rotation_impl.h"],
         },
+        **{h: f for h, f in _SCHEDULE.items() if h != "fit_rotation_impl.h"},
     },
     "triton": {
         "force_inline.h": {"*": "Triton inlines every @triton.jit function"},
@@ -41,7 +55,9 @@ NO_TWIN = {
         "quaternion.h": {"*": "only the fallback uses it: torchrot.generic.quaternion"},
         "fit_rotation_impl.h": {
             "solve_fallback_lanes": "torchrot.triton.operators.solve_fallback_lanes, outside the kernel",
+            **_SCHEDULE["fit_rotation_impl.h"],
         },
+        **{h: f for h, f in _SCHEDULE.items() if h != "fit_rotation_impl.h"},
     },
 }
 MIRRORS = tuple(NO_TWIN)

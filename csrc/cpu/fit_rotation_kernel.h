@@ -115,8 +115,8 @@ inline kernel::LaneState<L> restore_block(const SavedLane<typename L::Scalar>* s
 }
 
 template <typename L>
-inline void store_diagnostics(const kernel::LaneState<L>& s, int lane, const BatchArgs<typename L::Scalar>& args,
-                              int64_t index) {
+TORCHROT_INLINE void store_diagnostics(const kernel::LaneState<L>& s, int lane,
+                                       const BatchArgs<typename L::Scalar>& args, int64_t index) {
   if (args.iterations != nullptr) args.iterations[index] = static_cast<int32_t>(L::lane(s.iterations, lane));
   if (args.status != nullptr) {
     FitStatus status = FitStatus::kCayley;
@@ -127,10 +127,63 @@ inline void store_diagnostics(const kernel::LaneState<L>& s, int lane, const Bat
   }
 }
 
+// The one-step warm update of the block at `first` through
+// kernel::one_step_warm_from_memory (L::stream_one_step), which reads M and
+// init where it uses them: from the tensors themselves on SoA layouts that
+// hold each entry of the block as one vector, else from a copy of the block
+// on the stack (both read before `out`, which may alias them, is written).
+// The result goes through a buffer on the stack to finish and the store.
+template <typename L, BlockPath kPath>
+TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, int64_t first, int count,
+                                    bool diagnostics, int64_t& bad_inits) {
+  using T = typename L::Scalar;
+  alignas(64) T q[9 * L::width];
+  const auto done = [&](const kernel::LaneState<L>& s) TORCHROT_LAMBDA_INLINE {
+    store_block<L, kPath>(kernel::finish<L, false>(s), args.out, args.out_layout, first, count);
+    if (L::any(s.bad_init)) {
+      for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
+    }
+    if (diagnostics) {
+      for (int j = 0; j < count; ++j) store_diagnostics<L>(s, j, args, first + j);
+    }
+  };
+  const FitOptions& options = args.options;
+  if constexpr (kPath == BlockPath::kVectors) {
+    // Plain vectors, not tiles half a block wide (as load_block reads them, prefetches included).
+    if (2 * args.m_layout.tile != L::width && 2 * args.init_layout.tile != L::width) {
+      const T* M = args.M + matrix_offset(args.m_layout, first);
+      const T* R0 = args.init + matrix_offset(args.init_layout, first);
+      const int64_t ahead_m = matrix_offset(args.m_layout, first + kPrefetchBlocks * L::width);
+      const int64_t ahead_r = matrix_offset(args.init_layout, first + kPrefetchBlocks * L::width);
+      for (int k = 0; k < 9; ++k) {
+        __builtin_prefetch(args.M + ahead_m + entry_offset(args.m_layout, k));
+        __builtin_prefetch(args.init + ahead_r + entry_offset(args.init_layout, k));
+      }
+      const auto m = [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(M + entry_offset(args.m_layout, k)); };
+      const auto r = [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(R0 + entry_offset(args.init_layout, k)); };
+      kernel::one_step_warm_from_memory<L>(m, r, q, options.init_known_clean, options.variant, done);
+      return;
+    }
+  }
+  alignas(64) T m[9 * L::width], r[9 * L::width];
+  {
+    const Mat3<typename L::V> M = load_block<L, kPath>(args.M, args.m_layout, first, count);
+    const Mat3<typename L::V> R0 = load_block<L, kPath>(args.init, args.init_layout, first, count);
+    for (int k = 0; k < 9; ++k) {
+      L::store(M.a[k], m + k * L::width);
+      L::store(R0.a[k], r + k * L::width);
+    }
+  }
+  kernel::one_step_warm_from_memory<L>([&](int k) TORCHROT_LAMBDA_INLINE { return L::load(m + k * L::width); },
+                                       [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(r + k * L::width); }, q,
+                                       options.init_known_clean, options.variant, done);
+}
+
 // Fits matrices [begin, end); returns how many had a bad warm start.
 // kOneStep: max_iter = 1, through kernel::advance_one_step (a code path of its
 // own, so that the block's state stays in registers from the loads to the
-// stores; it timed faster than advance's loop: benchmarks/lab_notes.md).
+// stores; it timed faster than advance's loop: benchmarks/lab_notes.md), or,
+// for warm starts with L::stream_one_step (AVX2), through one_step_block.
 template <typename L, BlockPath kPath, bool kOneStep, bool kCold>
 int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end) {
   using T = typename L::Scalar;
@@ -145,6 +198,10 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
     // First pass: consecutive blocks, straight from and to memory.
     for (int64_t first = sub; first < sub_end; first += L::width) {
       const int count = static_cast<int>(std::min<int64_t>(L::width, sub_end - first));
+      if constexpr (kOneStep && !kCold && L::stream_one_step) {
+        one_step_block<L, kPath>(args, first, count, diagnostics, bad_inits);
+        continue;
+      }
       // Both inputs are in registers before `out` is written: out may alias them.
       const Mat3<typename L::V> M = load_block<L, kPath>(args.M, args.m_layout, first, count);
       Mat3<typename L::V> R0;

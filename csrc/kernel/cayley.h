@@ -177,14 +177,16 @@ TORCHROT_INLINE Mat3<V> cayley_increment(const CayleyStep<V>& step) {
 // once per entry, whatever the step: a Cayley step adds about an eps to
 // R's orthonormality error (measured: one-step results of warm starts within
 // ~1 eps of their warm start's deviation), where R Q added 4-6.
+// Row by row: row i of R Q is row i of R (`row`) times Q.
+template <typename V>
+TORCHROT_INLINE void rotate_row_by(const V row[3], const Mat3<V>& K, V out[3]) {
+  for (int c = 0; c < 3; ++c) out[c] = row[c] + dot3(row[0], K(0, c), row[1], K(1, c), row[2], K(2, c));
+}
+
 template <typename V>
 TORCHROT_INLINE Mat3<V> rotate_by(const Mat3<V>& R, const Mat3<V>& K) {
   Mat3<V> C;
-  for (int r = 0; r < 3; ++r) {
-    for (int c = 0; c < 3; ++c) {
-      C(r, c) = R(r, c) + dot3(R(r, 0), K(0, c), R(r, 1), K(1, c), R(r, 2), K(2, c));
-    }
-  }
+  for (int r = 0; r < 3; ++r) rotate_row_by(&R.a[3 * r], K, &C.a[3 * r]);
   return C;
 }
 

@@ -156,6 +156,18 @@ TORCHROT_INLINE typename L::Mask can_take(const CayleyStep<typename L::V>& step)
                      L::gt(norm2, V(std::numeric_limits<T>::min() / (eps * eps))));
 }
 
+// take_step's bookkeeping of `step`, taken by the lanes `stepping`.
+template <typename L>
+TORCHROT_INLINE void count_step(LaneState<L>& s, const CayleyStep<typename L::V>& step, typename L::Mask stepping) {
+  using V = typename L::V;
+  using T = typename L::Scalar;
+  const typename L::Mask large = L::mask_not(step.template smaller_than<L>(Tolerances<T>::large_step));
+  s.large_step = L::mask_or(s.large_step, L::mask_and(stepping, large));
+  const V taken = L::select(stepping, V(1), V(0));
+  s.iterations = s.iterations + taken;
+  s.attempt_steps = s.attempt_steps + taken;
+}
+
 // Applies `step` to the running lanes that can take it (`valid`, see
 // can_take), counts it (iterations, attempt_steps) and notes a large one
 // (LaneState::large_step); returns those lanes.
@@ -164,15 +176,9 @@ TORCHROT_INLINE typename L::Mask can_take(const CayleyStep<typename L::V>& step)
 template <typename L>
 TORCHROT_INLINE typename L::Mask take_step(LaneState<L>& s, const CayleyStep<typename L::V>& step,
                                            typename L::Mask valid) {
-  using V = typename L::V;
-  using T = typename L::Scalar;
   const typename L::Mask stepping = L::mask_and(s.running, valid);
   s.R = select<L>(stepping, rotate_by(s.R, cayley_increment(step)), s.R);
-  const typename L::Mask large = L::mask_not(step.template smaller_than<L>(Tolerances<T>::large_step));
-  s.large_step = L::mask_or(s.large_step, L::mask_and(stepping, large));
-  const V taken = L::select(stepping, V(1), V(0));
-  s.iterations = s.iterations + taken;
-  s.attempt_steps = s.attempt_steps + taken;
+  count_step<L>(s, step, stepping);
   return stepping;
 }
 
@@ -267,6 +273,92 @@ TORCHROT_INLINE void advance_one_step(LaneState<L>& s, Variant variant, const ty
   s.running = L::all_false();
 }
 
+// begin_fit and advance_one_step for a warm start (the paper's one-step
+// update), with M and init read from memory where they are used instead of
+// held in registers: m(k) and r(k) load entry k (row-major) of the block's M
+// and init (memory that nothing writes while this runs), and the result is
+// written to q (entry k at q + k * L::width). The same operations as those two, so the
+// same results bit for bit; then calls done(state), in each of its two paths,
+// so that the state is built after the reads (passed out by reference or
+// returned, GCC kept the whole state in memory or copied it).
+//
+// Why: the step (Algorithm 2, then R + R K for the Cayley map of Eq. 10)
+// needs R0 at its end and M's entries only to form S = R0^T A, yet from the
+// loads on both stayed in registers, 18 vectors besides the step's own; with
+// 16 registers (L::stream_one_step) GCC spilled values of every stage. Here M
+// is read once for its largest entry, S is built up over the rows of R0 and A
+// = M / max (transpose_times_by_rows: one row of each at a time besides S's
+// nine partial sums), and R0 is read again for the update, a row at a time
+// (with the 9 entries of K = Q - I) into q. Blocks with lanes that begin_fit treats
+// apart (a largest entry outside the normal range, M = 0 included, or a warm
+// start to clean up; rare) take the general path.
+template <typename L, typename LoadM, typename LoadR, typename Done>
+TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Scalar* q, bool init_known_clean,
+                                               Variant variant, Done done) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  using Mask = typename L::Mask;
+  using Tol = Tolerances<T>;
+  const auto load = [](auto entry) {
+    Mat3<V> X;
+    for (int k = 0; k < 9; ++k) X.a[k] = entry(k);
+    return X;
+  };
+  const V max_abs = max_abs_entry<L>(load(m));
+  Mask finite = L::is_finite(max_abs);
+  // unit_scale's lanes apart (zero included), and clean_warm_start's.
+  Mask apart = L::mask_or(L::lt(max_abs, V(std::numeric_limits<T>::min())),
+                          L::gt(max_abs, V(T(1) / std::numeric_limits<T>::min())));
+  Mask bad_init = L::all_false();
+  if (!init_known_clean) {
+    const WarmStartCheck<L> check = check_warm_start<L>(load(r));
+    finite = L::mask_and(finite, check.finite);
+    bad_init = check.bad;
+    apart = L::mask_or(apart, needs_cleaning<L>(check, Tol::init_clean));
+  }
+  if (L::any(apart)) {
+    const Mat3<typename L::V> R0 = load(r);
+    LaneState<L> s = begin_fit<L>(load(m), &R0, init_known_clean, nullptr);
+    advance_one_step<L>(s, variant);
+    done(s);
+    return;
+  }
+  const V inv = V(1) / max_abs;  // unit_scale without lanes apart
+  TORCHROT_MEMORY_BARRIER();     // M and R0 are read again below, row by row
+  const Mat3<V> S = transpose_times_by_rows<V>([&](int k, V a[3], V b[3]) {
+    for (int c = 0; c < 3; ++c) {
+      a[c] = r(3 * k + c);        // R0(k, c): row k of R0
+      b[c] = m(3 * k + c) * inv;  // A(k, c)
+    }
+  });
+  const CayleyStep<V> step = cayley_step(S, objective_estimate<L>(S, variant));
+  // take_step, with R0 read again for the update and R0 Q written over it row
+  // by row (a row of R0 and of the result at a time besides Q - I).
+  const Mask running = L::mask_and(finite, L::mask_not(bad_init));
+  const Mask stepping = L::mask_and(running, can_take<L>(step));
+  const Mat3<V> K = cayley_increment(step);
+  TORCHROT_MEMORY_BARRIER();
+  for (int i = 0; i < 3; ++i) {
+    V row[3], rotated[3];
+    for (int c = 0; c < 3; ++c) row[c] = r(3 * i + c);
+    rotate_row_by(row, K, rotated);
+    for (int c = 0; c < 3; ++c) L::store(L::select(stepping, rotated[c], row[c]), q + (3 * i + c) * L::width);
+  }
+  TORCHROT_MEMORY_BARRIER();
+  // begin_fit's state for these lanes (no M = 0: those are apart), set after
+  // the barriers (which would otherwise keep it in memory). s.A, read only by
+  // fallback lanes, which one step never makes, is left unset.
+  LaneState<L> s;
+  for (int k = 0; k < 9; ++k) s.R.a[k] = L::load(q + k * L::width);
+  s.iterations = s.attempt_steps = s.escapes = V(0);
+  s.switched = s.fallback = s.large_step = L::all_false();
+  s.bad_init = bad_init;
+  s.non_finite = L::mask_not(finite);
+  count_step<L>(s, step, stepping);
+  s.running = L::all_false();
+  done(s);
+}
+
 // The fallback lanes of R, solved exactly (rare: out of line).
 template <typename L>
 [[gnu::noinline]] void solve_fallback_lanes(const LaneState<L>& s, Mat3<typename L::V>& R) {
@@ -287,7 +379,10 @@ template <typename L>
 // deviation drifted past that threshold is cleaned before its next step
 // (limits::kInitCleanEps; tests/test_warm_start_precision.py chains 1,000
 // one-step updates). Fallback lanes are solved exactly, unusable lanes are NaN.
-template <typename L>
+// kFallback: whether s may hold fallback lanes (a one-step fit's cannot: only
+// converged mode makes them); without, s is not passed out of line, which
+// kept the whole state in memory.
+template <typename L, bool kFallback = true>
 TORCHROT_INLINE Mat3<typename L::V> finish(const LaneState<L>& s) {
   using T = typename L::Scalar;
   using V = typename L::V;
@@ -299,7 +394,9 @@ TORCHROT_INLINE Mat3<typename L::V> finish(const LaneState<L>& s) {
   } else if (L::any(clean_up)) {
     R = select<L>(clean_up, reorthonormalize(R), R);
   }
-  if (L::any(s.fallback)) solve_fallback_lanes<L>(s, R);
+  if constexpr (kFallback) {
+    if (L::any(s.fallback)) solve_fallback_lanes<L>(s, R);
+  }
   const typename L::Mask nan_lanes = L::mask_or(s.non_finite, s.bad_init);
   if (L::any(nan_lanes)) {
     const V nan(std::numeric_limits<T>::quiet_NaN());

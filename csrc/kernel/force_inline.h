@@ -10,6 +10,18 @@
 
 #if defined(__GNUC__) || defined(__clang__)
 #define TORCHROT_INLINE inline __attribute__((always_inline))
+#define TORCHROT_LAMBDA_INLINE __attribute__((always_inline))  // after a lambda's parameters
 #else
 #define TORCHROT_INLINE inline
+#define TORCHROT_LAMBDA_INLINE
+#endif
+
+// A compiler barrier: memory may have changed, so a load after it is not
+// merged with one before (no instruction is emitted). The one-step kernel
+// (kernel::one_step_warm_from_memory) uses it to read its operands again where
+// it needs them instead of holding them in registers all along.
+#if defined(__GNUC__) || defined(__clang__)
+#define TORCHROT_MEMORY_BARRIER() asm volatile("" ::: "memory")
+#else
+#define TORCHROT_MEMORY_BARRIER() ((void)0)
 #endif

@@ -33,6 +33,7 @@ struct ScalarLanes {
   using Mask = bool;
   static constexpr int width = 1;
   static constexpr bool fused_multiply_add = true;  // mul_add.h: std::fma
+  static constexpr bool stream_one_step = false;    // see VectorLanes
 
   static V load(const T* p) { return *p; }
   static void store(V v, T* p) { *p = v; }
@@ -181,6 +182,18 @@ struct VectorLanes : Masks<T> {
   using Mask = typename Masks<T>::Mask;
   static constexpr int width = V::size();
   static constexpr bool fused_multiply_add = kFusedMultiplyAdd;  // mul_add.h
+  // Whether the batched one-step warm update reads M and the warm start from
+  // memory where each step of it uses them (kernel::one_step_warm_from_memory)
+  // rather than holding them in registers from the loads to the update: with
+  // AVX2's 16 vector registers, the 9 entries of R0 held across the whole step
+  // (Algorithm 2 and the Cayley map, Eq. 10, in between) and the 9 of M held
+  // from the scaling to S = R0^T A left GCC spilling the step's own values to
+  // the stack (benchmarks/lab_notes.md). AVX-512 has 32 registers.
+#if defined(CPU_CAPABILITY_AVX2)
+  static constexpr bool stream_one_step = true;
+#else
+  static constexpr bool stream_one_step = false;
+#endif
 
   static V load(const T* p) { return V::loadu(p); }
   static void store(V v, T* p) { v.store(p); }
@@ -303,6 +316,7 @@ struct PairedLanes {
   static constexpr int half = Base::width;
   static constexpr int width = 2 * half;
   static constexpr bool fused_multiply_add = Base::fused_multiply_add;
+  static constexpr bool stream_one_step = false;  // the derivative kernel's lanes: no fits
   using HalfLanes = Base;
 
   static V load(const T* p) { return {Base::load(p), Base::load(p + half)}; }

@@ -50,6 +50,24 @@ TORCHROT_INLINE Mat3<V> transpose_times(const Mat3<V>& A, const Mat3<V>& B) {
   return C;
 }
 
+// A^T B built up over the rows k of A and B, from the last to the first,
+// row(k, a, b) giving row k of A in a and of B in b: the same roundings as
+// transpose_times (dot3 adds the k = 2 product first), in an order that needs
+// only one row of each operand at a time besides the nine partial sums, so
+// that the rows can be read from memory (or formed) where they are used.
+template <typename V, typename Rows>
+TORCHROT_INLINE Mat3<V> transpose_times_by_rows(Rows row) {
+  Mat3<V> C;
+  for (int k = 2; k >= 0; --k) {
+    V a[3], b[3];
+    row(k, a, b);
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) C(r, c) = k == 2 ? a[r] * b[c] : mul_add(a[r], b[c], C(r, c));
+    }
+  }
+  return C;
+}
+
 // Returns A B.
 template <typename V>
 TORCHROT_INLINE Mat3<V> times(const Mat3<V>& A, const Mat3<V>& B) {

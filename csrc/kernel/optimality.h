@@ -114,6 +114,13 @@ TORCHROT_INLINE typename L::Mask used_as_is(const WarmStartCheck<L>& check, type
   return L::mask_and(is_usable<L>(check), L::lt(check.deviation2, V(clean * clean)));
 }
 
+// The lanes that clean_warm_start changes: usable, deviating at least `clean`.
+template <typename L>
+TORCHROT_INLINE typename L::Mask needs_cleaning(const WarmStartCheck<L>& check, typename L::Scalar clean) {
+  using V = typename L::V;
+  return L::mask_and(is_usable<L>(check), L::mask_not(L::lt(check.deviation2, V(clean * clean))));
+}
+
 // The warm start at the compute dtype's precision: lanes whose deviation is at
 // or above `clean` (a rotation of lower precision, e.g. fitted in float32 and
 // fed to a float64 fit) take Newton-Schulz steps until it is below (each
@@ -125,7 +132,7 @@ inline Mat3<typename L::V> clean_warm_start(const Mat3<typename L::V>& R0, const
                                             typename L::Scalar clean) {
   using V = typename L::V;
   const V clean2(clean * clean);
-  typename L::Mask rough = L::mask_and(is_usable<L>(check), L::mask_not(L::lt(check.deviation2, clean2)));
+  typename L::Mask rough = needs_cleaning<L>(check, clean);
   if (!L::any(rough)) return R0;
   Mat3<V> R = R0;
   Mat3<V> G = gram(R0);  // as check_warm_start computed it
