@@ -37,7 +37,8 @@ def machine_info() -> dict:
         "processor": platform.processor() or platform.machine(),
         "python": platform.python_version(),
         "date": datetime.datetime.now(datetime.UTC).date().isoformat(),
-        "command": " ".join(["python", *sys.argv]) if sys.argv and sys.argv[0] else "python",
+        # As typed (sys.orig_argv keeps "-m torchrot", where sys.argv has the module's path).
+        "command": " ".join(["python", *sys.orig_argv[1:]]),
     }
 
 
