@@ -187,8 +187,11 @@ def _check_orthogonal(init: torch.Tensor, dtype: torch.dtype) -> None:
     compute = compute_dtype(dtype)
     Q = init.detach().to(compute)
     # |Q^T Q - I|_F^2 = |Q^T Q|_F^2 - 2 |Q|_F^2 + 3, without an identity
-    # tensor (which a DTensor init would not mix with).
-    P = Q.mT @ Q
+    # tensor (which a DTensor init would not mix with). Q^T Q as a broadcast
+    # product summed over rows, not a matmul: a batched matmul flattens the
+    # batch dimensions, which DTensor (torch 2.11) cannot do where an inner
+    # one is sharded.
+    P = (Q.unsqueeze(-1) * Q.unsqueeze(-2)).sum(-3)
     deviation = P.square().sum((-2, -1)) - 2 * Q.square().sum((-2, -1)) + 3
     bad = Q.isfinite().all(-1).all(-1) & ~(deviation < INIT_TOLERANCE**2)
     if bool(bad.any()):
