@@ -307,8 +307,8 @@ TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Sca
   const V max_abs = max_abs_entry<L>(load(m));
   Mask finite = L::is_finite(max_abs);
   // unit_scale's lanes apart (zero included), and clean_warm_start's.
-  Mask apart = L::mask_or(L::lt(max_abs, V(std::numeric_limits<T>::min())),
-                          L::gt(max_abs, V(T(1) / std::numeric_limits<T>::min())));
+  const OutsideNormalRange<L> range = outside_normal_range<L>(max_abs);
+  Mask apart = L::mask_or(range.below_normal, range.above_reciprocal);
   Mask bad_init = L::all_false();
   if (!init_known_clean) {
     const WarmStartCheck<L> check = check_warm_start<L>(load(r));

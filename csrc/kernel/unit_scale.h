@@ -23,19 +23,36 @@ struct UnitScale {
   V inv;      // 1 / (max_abs * lift), 0 for M = 0
 };
 
-// M scaled by 1 / max_abs (max_abs = max_abs_entry(M)). The reciprocal of a
-// maximum outside the normal range is not a normal number (1 / subnormal may
-// overflow; above 1 / T_min, 1 / max_abs is subnormal and has lost bits), so
-// such lanes are first lifted by 2^digits or dropped by 2^-digits (exact but
-// for entries far below the maximum). Blocks without such lanes skip it.
+// The lanes whose largest |entry| max_abs (max_abs_entry(M)) has no normal
+// reciprocal, which unit_scale lifts or drops before it scales: below the
+// normal range (M = 0 included; 1 / subnormal may overflow) or above its
+// reciprocal (1 / max_abs is subnormal and has lost bits). Callers that skip
+// unit_scale's special case read it here.
+template <typename L>
+struct OutsideNormalRange {
+  typename L::Mask below_normal;
+  typename L::Mask above_reciprocal;
+};
+
+template <typename L>
+TORCHROT_INLINE OutsideNormalRange<L> outside_normal_range(typename L::V max_abs) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  constexpr T tiny = std::numeric_limits<T>::min();
+  return {L::lt(max_abs, V(tiny)), L::gt(max_abs, V(T(1) / tiny))};
+}
+
+// M scaled by 1 / max_abs (max_abs = max_abs_entry(M)). Lanes outside the
+// normal range (outside_normal_range) are first lifted by 2^digits or
+// dropped by 2^-digits (exact but for entries far below the maximum). Blocks
+// without such lanes skip it.
 template <typename L>
 TORCHROT_INLINE UnitScale<typename L::V> unit_scale(const Mat3<typename L::V>& M, typename L::V max_abs) {
   using T = typename L::Scalar;
   using V = typename L::V;
   UnitScale<V> s;
   const auto zero = L::eq(max_abs, V(0));
-  const auto below_normal = L::lt(max_abs, V(std::numeric_limits<T>::min()));  // zero included
-  const auto above_reciprocal = L::gt(max_abs, V(T(1) / std::numeric_limits<T>::min()));
+  const auto [below_normal, above_reciprocal] = outside_normal_range<L>(max_abs);
   const auto special = L::mask_or(below_normal, above_reciprocal);
   if (L::any(special)) {
     constexpr int kDigits = std::numeric_limits<T>::digits;

@@ -7,7 +7,15 @@ import math
 
 import torch
 
-__all__ = ["unit_scale"]
+__all__ = ["outside_normal_range", "unit_scale"]
+
+
+def outside_normal_range(max_abs):
+    """(below_normal, above_reciprocal): the lanes whose largest |entry|
+    ``max_abs`` has no normal reciprocal, which unit_scale lifts or drops:
+    below the smallest normal number (M = 0 included) or above its reciprocal."""
+    tiny = torch.finfo(max_abs.dtype).tiny
+    return max_abs < tiny, max_abs > 1 / tiny
 
 
 def unit_scale(M, max_abs):
@@ -19,8 +27,8 @@ def unit_scale(M, max_abs):
     finfo = torch.finfo(M[0].dtype)
     digits = round(-math.log2(finfo.eps)) + 1
     ones = torch.ones_like(max_abs)
-    lift = torch.where(max_abs < finfo.tiny, float(2**digits),
-                       torch.where(max_abs > 1 / finfo.tiny, float(2**-digits), ones))
+    below_normal, above_reciprocal = outside_normal_range(max_abs)
+    lift = torch.where(below_normal, float(2**digits), torch.where(above_reciprocal, float(2**-digits), ones))
     zero = max_abs == 0
     inv = torch.where(zero, 0.0, 1 / torch.where(zero, 1.0, max_abs * lift))
     return [(x * lift) * inv for x in M], lift, inv
