@@ -64,10 +64,13 @@ if not SUPPORTED_TORCH[0] <= TORCH_RELEASE <= SUPPORTED_TORCH[1]:
 
 # -fopenmp: at::parallel_for is serial without it. -g0: no debug information
 # (Python's own CFLAGS ask for -g, which made the kernel objects much slower to
-# compile: benchmarks/lab_notes.md). -Wno-unknown-pragmas: torch's vector
-# headers carry CUDA's and clang's pragmas, which GCC reports 78 times per
-# build. The C++ standard is left to torch (see above).
-COMMON_FLAGS = ["-g0", "-fopenmp", "-fvisibility=hidden", "-ffp-contract=off", "-Wno-unknown-pragmas"]
+# compile: benchmarks/lab_notes.md); TORCHROT_DEBUG_INFO=1 asks for it (-g: the
+# same code, which benchmarks/instruction_profile.py attributes to source
+# functions). -Wno-unknown-pragmas: torch's vector headers carry CUDA's and
+# clang's pragmas, which GCC reports 78 times per build. The C++ standard is
+# left to torch (see above).
+DEBUG_INFO = ["-g"] if os.environ.get("TORCHROT_DEBUG_INFO", "") == "1" else ["-g0"]
+COMMON_FLAGS = [*DEBUG_INFO, "-fopenmp", "-fvisibility=hidden", "-ffp-contract=off", "-Wno-unknown-pragmas"]
 # The kernels are the hot code: -O3. The operator sources only check, lay out
 # and dispatch (as fast at -O2 as at -O3), and compile faster at -O2
 # (benchmarks/lab_notes.md).

@@ -53,7 +53,8 @@ from torchrot.bench.machine import Load, load_average, machine_info
 from torchrot.bench.timing import interleaved_median_seconds
 from torchrot.testing import rotation_svd, soa_view, tiled_view
 
-__all__ = ["FLAGS", "ONE_STEP", "ITERATED", "TARGETS", "TARGET_LIMITS", "TILE", "blocks", "build", "main"]
+__all__ = ["FLAGS", "ONE_STEP", "ITERATED", "TARGETS", "TARGET_LIMITS", "TILE", "blocks", "build", "compile_library",
+           "load", "main"]
 
 TILE = 8  # the authors' AVX blocks: 8 float32 matrices
 ONE_STEP = "_Z22fit_rotation_small_avxPfS_i"  # int fit_rotation_small_avx(float* M, float* R, int groups)
@@ -91,19 +92,31 @@ TARGET_LIMITS = {
 }
 
 
-def build(source: str, eigen: str, folder: str, march: str = "native") -> dict:
-    """The authors' kernels (``{"one-step": fn, "iterated": fn}``), compiled into a
-    shared library in ``folder``, for ``-march=march`` (their build: native)."""
+def compile_library(source: str, eigen: str, folder: str, march: str = "native", debug_info: bool = False) -> str:
+    """The path of the authors' kernels compiled into a shared library in
+    ``folder``, for ``-march=march`` (their build: native), with debug
+    information if asked (the same code: instruction_profile.py reads it)."""
     library = os.path.join(folder, "fit_rotation_avx.so")
-    flags = [f"-march={march}" if flag == "-march=native" else flag for flag in FLAGS]
+    flags = [f"-march={march}" if flag == "-march=native" else flag for flag in FLAGS] + (["-g"] if debug_info else [])
     subprocess.run(["g++", *flags, "-fPIC", "-shared", f"-I{eigen}", "-o", library,
                     os.path.join(source, "src", "fit_rotation_avx.cpp")], check=True)
+    return library
+
+
+def load(library: str) -> dict:
+    """The kernels of a library of compile_library: ``{"one-step": fn, "iterated": fn}``,
+    each ``fn(M_blocks, R_blocks, groups)`` on data pointers of the (N / 8, 9, 8) layout."""
     kernels = {}
     for name, symbol in (("one-step", ONE_STEP), ("iterated", ITERATED)):
         kernel = getattr(ctypes.CDLL(library), symbol)
         kernel.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
         kernels[name] = kernel
     return kernels
+
+
+def build(source: str, eigen: str, folder: str, march: str = "native") -> dict:
+    """The authors' kernels, compiled (compile_library) and loaded (load)."""
+    return load(compile_library(source, eigen, folder, march))
 
 
 def blocks(t: torch.Tensor) -> torch.Tensor:

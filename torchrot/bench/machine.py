@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime
 import os
 import platform
+import shlex
 import sys
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
@@ -37,8 +38,9 @@ def machine_info() -> dict:
         "processor": platform.processor() or platform.machine(),
         "python": platform.python_version(),
         "date": datetime.datetime.now(datetime.UTC).date().isoformat(),
-        # As typed (sys.orig_argv keeps "-m torchrot", where sys.argv has the module's path).
-        "command": " ".join(["python", *sys.orig_argv[1:]]),
+        # As typed (sys.orig_argv keeps "-m torchrot", where sys.argv has the module's path),
+        # quoted where an argument needs it, so that it can be pasted into a shell.
+        "command": shlex.join(["python", *sys.orig_argv[1:]]),
     }
 
 
