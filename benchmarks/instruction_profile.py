@@ -32,9 +32,8 @@ import subprocess
 import sys
 import tempfile
 
-import numpy as np
-
 import instruction_counts
+import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ENTRY_POINTS = ("fit_range", "count_bad_warm_starts", "rotation_gradient_range", "fit_rotation_small_avx",
@@ -214,7 +213,8 @@ def main() -> None:
     parser.add_argument("--eigen", default="/usr/include/eigen3")
     parser.add_argument("--march", default="haswell", help="the authors' kernels' -march (haswell: AVX2)")
     args = parser.parse_args()
-    if min(args.sizes) < instruction_counts.MIN_SIZE or args.sizes[0] >= args.sizes[1] or any(n % 8 for n in args.sizes):
+    n1, n2 = args.sizes
+    if min(n1, n2) < instruction_counts.MIN_SIZE or n1 >= n2 or n1 % 8 or n2 % 8:
         parser.error(f"--sizes N1 N2 needs {instruction_counts.MIN_SIZE} <= N1 < N2, multiples of 8")
     if args.authors is None and any(case.startswith(instruction_counts.AUTHORS_PREFIX) for case in args.cases):
         parser.error("the authors' cases need --authors")
@@ -237,15 +237,15 @@ def main() -> None:
         if ".debug_info" not in sections:
             sys.exit(f"{libraries['torchrot']} has no debug information: build torchrot with TORCHROT_DEBUG_INFO=1")
         tables = {case: _traced_rows(case, args, counter, libraries, tmp) for case in args.cases}
-    n1, n2 = args.sizes
     print(f"Machine: {machine_info()}\n")
     print(f"Per matrix, float32, 1 thread, ((N = {n2}) - (N = {n1})) / {n2 - n1}; the ARAP recording's warm data "
           f"(instruction_counts.py); stack operands: addressed off %rsp or %rbp"
           f"{f'; the authors kernels built with -march={args.march}' if args.authors else ''}; rows: the functions "
           f"{args.depth} level(s) below {f'{args.root} (where it runs, else below ' if args.root else '('}"
-          f"the kernel's entry point{')' if args.root else ')'}.")
+          "the kernel's entry point).")
     for case, (rows, ran) in tables.items():
-        print(f"\n{case} ({'the authors kernel' if case.startswith(instruction_counts.AUTHORS_PREFIX) else f'kernel {ran}'}):\n")
+        whose = "the authors' kernel" if case.startswith(instruction_counts.AUTHORS_PREFIX) else f"kernel {ran}"
+        print(f"\n{case} ({whose}):\n")
         print("| function | instructions | vmov* | stack operands |\n|---|---|---|---|")
         for name, row in sorted(rows.items(), key=lambda item: -item[1][0]):
             if abs(row[0]) >= 0.05:
