@@ -35,7 +35,6 @@ import tempfile
 import instruction_counts
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
 ENTRY_POINTS = ("fit_range", "count_bad_warm_starts", "rotation_gradient_range", "fit_rotation_small_avx",
                 "fit_rotation_avx")
 OUTSIDE = "(outside the library: Python, torch)"
@@ -182,11 +181,10 @@ def profile(trace_prefix: str, library: str, sizes: tuple[int, int], depth: int,
     return dict(rows)
 
 
-def _traced_rows(case: str, args, counter: str, libraries: dict, tmp: str) -> tuple[dict, str]:
+def _traced_rows(case: str, args, counter: str, libraries: dict, prefix: str) -> tuple[dict, str]:
     """profile's rows of one case, in torchrot's library or, for the authors' cases,
     theirs, and the kernel it ran on."""
     library = libraries["authors" if case.startswith(instruction_counts.AUTHORS_PREFIX) else "torchrot"]
-    prefix = os.path.join(tmp, f"trace{abs(hash(case))}")
     worker = [counter, sys.executable, instruction_counts.__file__, "--worker", "--kernels", args.kernel,
               "--sizes", *map(str, args.sizes), "--repeats", "1", "--only", case]
     if "authors" in libraries:
@@ -236,7 +234,8 @@ def main() -> None:
                                   text=True).stdout
         if ".debug_info" not in sections:
             sys.exit(f"{libraries['torchrot']} has no debug information: build torchrot with TORCHROT_DEBUG_INFO=1")
-        tables = {case: _traced_rows(case, args, counter, libraries, tmp) for case in args.cases}
+        tables = {case: _traced_rows(case, args, counter, libraries, os.path.join(tmp, f"trace{i}"))
+                  for i, case in enumerate(args.cases)}
     print(f"Machine: {machine_info()}\n")
     print(f"Per matrix, float32, 1 thread, ((N = {n2}) - (N = {n1})) / {n2 - n1}; the ARAP recording's warm data "
           f"(instruction_counts.py); stack operands: addressed off %rsp or %rbp"
