@@ -9,6 +9,7 @@ threads. x86-64's "default" build, which rounds a * b + c twice
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import pytest
@@ -17,7 +18,7 @@ from isa_helpers import ALL_ISA_PARAMS, DTYPES, _cpu_kernel, _describe, _info, _
 
 import torchrot
 from torchrot._constants import VARIANTS
-from torchrot.testing import dtype_id, make_warm_start, random_rotations, rounding_reference, soa_view, tiled_view
+from torchrot.testing import bits, dtype_id, make_warm_start, random_rotations, rounding_reference, soa_view, tiled_view
 
 # ---------------------------------------------------------------------------
 # 3. Every tail length, contiguous and strided layouts
@@ -181,3 +182,47 @@ def test_tiled_layout_two_threads(tile, use_isa):
         torch.set_num_threads(previous)
     for g, e in zip(got, expected):
         assert torch.equal(g.reshape(n, 3, 3), e)
+
+
+
+# layout -> (view, batch size): every tile a whole number of blocks wide or not
+WARM_START_CHECK_LAYOUTS = {
+    "soa": (soa_view, 70),
+    **{f"tiles of {tile}": (functools.partial(tiled_view, tile=tile), 80) for tile in (4, 8, 16)},
+}
+
+
+@pytest.mark.parametrize("layout", list(WARM_START_CHECK_LAYOUTS))
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
+@pytest.mark.parametrize("isa", ALL_ISA_PARAMS)
+def test_warm_start_check_in_soa_and_tiled_layouts(isa, dtype, layout, use_isa):
+    """out= checks every warm start before it writes, in structure-of-arrays
+    and tiled layouts too (where the check reads them as the one-step does):
+    a bad warm start in any block, the last included, raises and leaves out
+    and init as they were, in place or not; with a lower-precision one (which
+    keeps the fit's own check on) the results are the scalar kernel's on
+    contiguous copies (rounding_reference)."""
+    view, n = WARM_START_CHECK_LAYOUTS[layout]
+    Mc, initc = make_warm_start("warm", n, seed=8, dtype=dtype)
+    for bad_at in (0, 13, n - 1):
+        init = initc.clone()
+        init[bad_at] = -init[bad_at]  # det -1
+        M, init = view(Mc), view(init)
+        for in_place in (False, True):
+            out = init if in_place else view(torch.full_like(Mc, 7.0))
+            before, init_before = bits(out).clone(), bits(init).clone()
+            with use_isa(isa):
+                with pytest.raises(ValueError, match=rf"init must hold rotations .* 1 of {n} are not"):
+                    torchrot.fit_rotation(M, init, max_iter=1, out=out)
+            assert torch.equal(bits(out), before), f"bad warm start {bad_at}: out= written"
+            assert torch.equal(bits(init), init_before), f"bad warm start {bad_at}: init written"
+    unclean = initc.clone()
+    unclean[37] = unclean[37].to(torch.bfloat16).to(dtype)
+    for max_iter in (1, None):
+        expected = _run_info(use_isa, rounding_reference(isa), Mc, unclean, max_iter, VARIANTS[0])[0]
+        for in_place in (False, True):
+            init = view(unclean)
+            out = init if in_place else view(torch.zeros_like(Mc))
+            with use_isa(isa):
+                torchrot.fit_rotation(view(Mc), init, max_iter=max_iter, variant=VARIANTS[0], out=out)
+            assert _same(out.reshape(n, 3, 3), expected), f"max_iter={max_iter} in_place={in_place}"

@@ -231,6 +231,29 @@ inline bool tiles_line_up(const Layout& layout, int width) {
   return layout.tile == 0 || layout.tile % width == 0 || 2 * layout.tile == width;
 }
 
+// Where the full blocks of an SoA layout and their entries lie when both
+// are evenly spaced: the block of `width` matrices at `first` (a multiple of
+// the width) starts at block * first, and its entry k at entry * k from there.
+// Then the nine entries of a block are a base pointer and one stride, not
+// nine offsets computed from the Layout.
+struct EvenBlocks {
+  int64_t block = 0, entry = 0;  // both 0: not evenly spaced
+  // The block is one dense run of 9 * width values, entry k at k * width.
+  bool dense() const { return block == 9; }
+};
+
+// Untiled structure of arrays with rows of entries evenly spaced (a permuted
+// (3, 3, N) tensor: entry k at k * N), or tiles of exactly `width` matrices
+// one after another, each entry of a tile one vector (the paper authors'
+// blocks at the kernel's own width: entry k at k * width).
+inline EvenBlocks even_blocks(const Layout& layout, int width) {
+  const int64_t* s = layout.stride;
+  if (s[0] != 1 || s[1] != 3 * s[2]) return {};
+  if (layout.tile == 0) return {1, s[2]};
+  if (layout.tile == width && s[2] == width && layout.tile_stride == 9 * width) return {9, width};
+  return {};
+}
+
 // Whether a layout is contiguous (N, 3, 3).
 inline bool is_contiguous_batch(const Layout& layout) {
   const int64_t* s = layout.stride;

@@ -127,19 +127,42 @@ TORCHROT_INLINE void store_diagnostics(const kernel::LaneState<L>& s, int lane,
   }
 }
 
+// Prefetches, kPrefetchBlocks blocks ahead, the nine entries of an evenly
+// spaced block (`entry(k)`: entry k's offset from `block`, which is `stride`
+// from the next block): every cache line of the nine when they are one
+// dense run (the paper authors' tiles at the kernel's width), else each
+// entry's line, for every other block where a line holds two blocks' entry
+// (each entry stream moves on by half a line a block).
+template <typename L, int kWrite, typename Entry>
+TORCHROT_INLINE void prefetch_even_block(const typename L::Scalar* block, int64_t first, int64_t stride, Entry entry,
+                                         bool dense) {
+  if (dense) {
+    prefetch_contiguous_block<L, kWrite>(block);
+    return;
+  }
+  constexpr int64_t kBlocksPerLine = std::max<int64_t>(1, 64 / (L::width * sizeof(typename L::Scalar)));
+  if ((first / L::width) % kBlocksPerLine != 0) return;
+  const typename L::Scalar* ahead = block + kPrefetchBlocks * stride;
+  for (int k = 0; k < 9; ++k) __builtin_prefetch(ahead + entry(k), kWrite);
+}
+
 // The one-step warm update of the block at `first` through
 // kernel::one_step_warm_from_memory (L::stream_one_step), which reads M and
 // init where it uses them: from the tensors themselves on SoA layouts that
 // hold each entry of the block as one vector, else from a copy of the block
 // on the stack (both read before `out`, which may alias them, is written).
 // The result goes through a buffer on the stack to finish and the store.
+// `even`: M's, init's and out's full blocks (kVectors) where all three are
+// evenly spaced (EvenBlocks), else null; on the paper authors' tiles at the
+// kernel's width (all three {9, L::width}) their entries' offsets are
+// constants.
 template <typename L, BlockPath kPath>
 TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, int64_t first, int count,
-                                    bool diagnostics, int64_t& bad_inits) {
+                                    const EvenBlocks* even, bool diagnostics, int64_t& bad_inits) {
   using T = typename L::Scalar;
+  using V = typename L::V;
   alignas(64) T q[9 * L::width];
-  const auto done = [&](const kernel::LaneState<L>& s) TORCHROT_LAMBDA_INLINE {
-    store_block<L, kPath>(kernel::finish<L, false>(s), args.out, args.out_layout, first, count);
+  const auto account = [&](const kernel::LaneState<L>& s) TORCHROT_LAMBDA_INLINE {
     if (L::any(s.bad_init)) {
       for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
     }
@@ -148,6 +171,40 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
     }
   };
   const FitOptions& options = args.options;
+  if constexpr (kPath == BlockPath::kVectors) {
+    // entry_m(k), entry_r(k), entry_out(k): the offsets of entry k in M's, init's and out's blocks.
+    const auto run_even = [&](auto entry_m, auto entry_r, auto entry_out, bool dense) TORCHROT_LAMBDA_INLINE {
+      const T* M = args.M + even[0].block * first;
+      const T* R0 = args.init + even[1].block * first;
+      T* out = args.out + even[2].block * first;
+      prefetch_even_block<L, 0>(M, first, even[0].block * L::width, entry_m, dense);
+      prefetch_even_block<L, 0>(R0, first, even[1].block * L::width, entry_r, dense);
+      prefetch_even_block<L, 1>(out, first, even[2].block * L::width, entry_out, dense);
+      kernel::one_step_warm_from_memory<L>(
+          [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(M + entry_m(k)); },
+          [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(R0 + entry_r(k)); }, q, options.init_known_clean,
+          options.variant, [&](const kernel::LaneState<L>& s) TORCHROT_LAMBDA_INLINE {
+            const Mat3<V> R = kernel::finish<L, false>(s);
+            for (int k = 0; k < 9; ++k) L::store(R.a[k], out + entry_out(k));
+            account(s);
+          });
+    };
+    if (even != nullptr) {
+      if (even[0].dense() && even[1].dense() && even[2].dense()) {
+        const auto tile_entry = [](int k) TORCHROT_LAMBDA_INLINE { return int64_t{k} * L::width; };
+        run_even(tile_entry, tile_entry, tile_entry, true);
+      } else {
+        run_even([&](int k) TORCHROT_LAMBDA_INLINE { return k * even[0].entry; },
+                 [&](int k) TORCHROT_LAMBDA_INLINE { return k * even[1].entry; },
+                 [&](int k) TORCHROT_LAMBDA_INLINE { return k * even[2].entry; }, false);
+      }
+      return;
+    }
+  }
+  const auto done = [&](const kernel::LaneState<L>& s) TORCHROT_LAMBDA_INLINE {
+    store_block<L, kPath>(kernel::finish<L, false>(s), args.out, args.out_layout, first, count);
+    account(s);
+  };
   if constexpr (kPath == BlockPath::kVectors) {
     // Plain vectors, not tiles half a block wide (as load_block reads them, prefetches included).
     if (2 * args.m_layout.tile != L::width && 2 * args.init_layout.tile != L::width) {
@@ -192,6 +249,11 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
   const int64_t first_budget = converge ? kStepsPerPass : args.options.max_iter;
   std::vector<SavedLane<T>> pending, next;
   int64_t bad_inits = 0;
+  // M's, init's and out's EvenBlocks, where all three have them.
+  const EvenBlocks even[3] = {even_blocks(args.m_layout, L::width),
+                              kCold ? EvenBlocks{} : even_blocks(args.init_layout, L::width),
+                              even_blocks(args.out_layout, L::width)};
+  const bool all_even = kPath == BlockPath::kVectors && !kCold && even[0].entry && even[1].entry && even[2].entry;
   for (int64_t sub = begin; sub < end; sub += kSubChunk) {
     const int64_t sub_end = std::min(end, sub + kSubChunk);
     pending.clear();
@@ -199,7 +261,7 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
     for (int64_t first = sub; first < sub_end; first += L::width) {
       const int count = static_cast<int>(std::min<int64_t>(L::width, sub_end - first));
       if constexpr (kOneStep && !kCold && L::stream_one_step) {
-        one_step_block<L, kPath>(args, first, count, diagnostics, bad_inits);
+        one_step_block<L, kPath>(args, first, count, all_even ? even : nullptr, diagnostics, bad_inits);
         continue;
       }
       // Both inputs are in registers before `out` is written: out may alias them.
@@ -295,6 +357,7 @@ WarmStartCount count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& ar
   using T = typename L::Scalar;
   using V = typename L::V;
   const BlockPath path = full_block_path(L::width, {&args.layout});
+  const EvenBlocks even = even_blocks(args.layout, L::width);
   std::atomic<int64_t> bad{0}, unclean{0};
   parallel_blocks(args.n, L::width, kGrainSize, [&](int64_t begin, int64_t end) {
     const FlushToZero flush_to_zero;  // as the fit that trusts this count computes
@@ -302,7 +365,15 @@ WarmStartCount count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& ar
     run_block_paths<L>(path, begin, end, [&](auto block_path, int64_t b, int64_t e) {
       for (int64_t first = b; first < e; first += L::width) {
         const int count = static_cast<int>(std::min<int64_t>(L::width, e - first));
-        const Mat3<V> R0 = load_block<L, block_path.value>(args.init, args.layout, first, count);
+        Mat3<V> R0;
+        if (block_path.value == BlockPath::kVectors && even.entry != 0) {  // as one_step_block reads it
+          const T* block = args.init + even.block * first;
+          const auto entry = [&](int k) TORCHROT_LAMBDA_INLINE { return k * even.entry; };
+          prefetch_even_block<L, 0>(block, first, even.block * L::width, entry, even.dense());
+          for (int k = 0; k < 9; ++k) R0.a[k] = L::load(block + entry(k));
+        } else {
+          R0 = load_block<L, block_path.value>(args.init, args.layout, first, count);
+        }
         const kernel::WarmStartCheck<L> check = kernel::check_warm_start<L>(R0);
         const typename L::Mask clean = kernel::used_as_is<L>(check, kernel::Tolerances<T>::init_clean);
         if (!L::all(clean)) {
