@@ -180,14 +180,17 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
       prefetch_even_block<L, 0>(M, first, even[0].block * L::width, entry_m, dense);
       prefetch_even_block<L, 0>(R0, first, even[1].block * L::width, entry_r, dense);
       prefetch_even_block<L, 1>(out, first, even[2].block * L::width, entry_out, dense);
-      kernel::one_step_warm_from_memory<L>(
-          [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(M + entry_m(k)); },
-          [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(R0 + entry_r(k)); }, q, options.init_known_clean,
-          options.variant, [&](const kernel::LaneState<L>& s) TORCHROT_LAMBDA_INLINE {
-            const Mat3<V> R = kernel::finish<L, false>(s);
-            for (int k = 0; k < 9; ++k) L::store(R.a[k], out + entry_out(k));
-            account(s);
-          });
+      kernel::one_step_warm_from_memory<L>([&](int k) TORCHROT_LAMBDA_INLINE { return L::load(M + entry_m(k)); },
+                                           [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(R0 + entry_r(k)); }, q,
+                                           [&](int k, V x) TORCHROT_LAMBDA_INLINE { L::store(x, out + entry_out(k)); },
+                                           options.init_known_clean, options.variant,
+                                           [&](const kernel::LaneState<L>& s, bool stored) TORCHROT_LAMBDA_INLINE {
+                                             if (!stored) {
+                                               const Mat3<V> R = kernel::finish<L, false>(s);
+                                               for (int k = 0; k < 9; ++k) L::store(R.a[k], out + entry_out(k));
+                                             }
+                                             account(s);
+                                           });
     };
     if (even != nullptr) {
       if (even[0].dense() && even[1].dense() && even[2].dense()) {
@@ -201,7 +204,7 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
       return;
     }
   }
-  const auto done = [&](const kernel::LaneState<L>& s) TORCHROT_LAMBDA_INLINE {
+  const auto done = [&](const kernel::LaneState<L>& s, bool) TORCHROT_LAMBDA_INLINE {  // no store: never stored
     store_block<L, kPath>(kernel::finish<L, false>(s), args.out, args.out_layout, first, count);
     account(s);
   };
@@ -218,7 +221,7 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
       }
       const auto m = [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(M + entry_offset(args.m_layout, k)); };
       const auto r = [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(R0 + entry_offset(args.init_layout, k)); };
-      kernel::one_step_warm_from_memory<L>(m, r, q, options.init_known_clean, options.variant, done);
+      kernel::one_step_warm_from_memory<L>(m, r, q, nullptr, options.init_known_clean, options.variant, done);
       return;
     }
   }
@@ -233,7 +236,7 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
   }
   kernel::one_step_warm_from_memory<L>([&](int k) TORCHROT_LAMBDA_INLINE { return L::load(m + k * L::width); },
                                        [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(r + k * L::width); }, q,
-                                       options.init_known_clean, options.variant, done);
+                                       nullptr, options.init_known_clean, options.variant, done);
 }
 
 // Fits matrices [begin, end); returns how many had a bad warm start.

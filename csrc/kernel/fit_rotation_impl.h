@@ -11,6 +11,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <type_traits>
 
 #include "../limits.h"
 #include "cayley.h"
@@ -292,9 +293,15 @@ TORCHROT_INLINE void advance_one_step(LaneState<L>& s, Variant variant, const ty
 // (with the 9 entries of K = Q - I) into q. Blocks with lanes that begin_fit treats
 // apart (a largest entry outside the normal range, M = 0 included, or a warm
 // start to clean up; rare) take the general path.
-template <typename L, typename LoadM, typename LoadR, typename Done>
-TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Scalar* q, bool init_known_clean,
-                                               Variant variant, Done done) {
+// `store`: store(k, v) writes entry k of the block's result where it goes
+// (memory that aliases M or init exactly, if at all: each row of R0 is read
+// before that row is written), or nullptr. Where finish would change nothing
+// (every lane runs and none took a large step), the rows go there instead
+// of to q, and done(state, true) is called with state.R unset; else
+// done(state, false).
+template <typename L, typename LoadM, typename LoadR, typename Store, typename Done>
+TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Scalar* q, Store store,
+                                               bool init_known_clean, Variant variant, Done done) {
   using T = typename L::Scalar;
   using V = typename L::V;
   using Mask = typename L::Mask;
@@ -320,7 +327,7 @@ TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Sca
     const Mat3<typename L::V> R0 = load(r);
     LaneState<L> s = begin_fit<L>(load(m), &R0, init_known_clean, nullptr);
     advance_one_step<L>(s, variant);
-    done(s);
+    done(s, false);
     return;
   }
   const V inv = V(1) / max_abs;  // unit_scale without lanes apart
@@ -337,26 +344,39 @@ TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Sca
   const Mask running = L::mask_and(finite, L::mask_not(bad_init));
   const Mask stepping = L::mask_and(running, can_take<L>(step));
   const Mat3<V> K = cayley_increment(step);
-  TORCHROT_MEMORY_BARRIER();
-  for (int i = 0; i < 3; ++i) {
-    V row[3], rotated[3];
-    for (int c = 0; c < 3; ++c) row[c] = r(3 * i + c);
-    rotate_row_by(row, K, rotated);
-    for (int c = 0; c < 3; ++c) L::store(L::select(stepping, rotated[c], row[c]), q + (3 * i + c) * L::width);
+  bool as_computed = false;  // finish would change nothing (it cleans up large steps, NaNs the lanes not running)
+  if constexpr (!std::is_same_v<Store, std::nullptr_t>) {
+    const Mask large = L::mask_not(step.template smaller_than<L>(Tol::large_step));
+    as_computed = L::all(running) && !L::any(L::mask_and(stepping, large));
   }
+  const auto write_rows = [&](auto write) TORCHROT_LAMBDA_INLINE {
+    for (int i = 0; i < 3; ++i) {
+      V row[3], rotated[3];
+      for (int c = 0; c < 3; ++c) row[c] = r(3 * i + c);
+      rotate_row_by(row, K, rotated);
+      for (int c = 0; c < 3; ++c) write(3 * i + c, L::select(stepping, rotated[c], row[c]));
+    }
+  };
+  TORCHROT_MEMORY_BARRIER();
+  if constexpr (!std::is_same_v<Store, std::nullptr_t>) {
+    if (as_computed) write_rows(store);
+  }
+  if (!as_computed) write_rows([&](int k, V x) TORCHROT_LAMBDA_INLINE { L::store(x, q + k * L::width); });
   TORCHROT_MEMORY_BARRIER();
   // begin_fit's state for these lanes (no M = 0: those are apart), set after
   // the barriers (which would otherwise keep it in memory). s.A, read only by
   // fallback lanes, which one step never makes, is left unset.
   LaneState<L> s;
-  for (int k = 0; k < 9; ++k) s.R.a[k] = L::load(q + k * L::width);
+  if (!as_computed) {
+    for (int k = 0; k < 9; ++k) s.R.a[k] = L::load(q + k * L::width);
+  }
   s.iterations = s.attempt_steps = s.escapes = V(0);
   s.switched = s.fallback = s.large_step = L::all_false();
   s.bad_init = bad_init;
   s.non_finite = L::mask_not(finite);
   count_step<L>(s, step, stepping);
   s.running = L::all_false();
-  done(s);
+  done(s, as_computed);
 }
 
 // The fallback lanes of R, solved exactly (rare: out of line).
