@@ -250,7 +250,7 @@ def main() -> None:
             if abs(row[0]) >= 0.05:
                 print(f"| {name} | {row[0]:.1f} | {row[1]:.1f} | {row[2]:.1f} |")
         total = [sum(row[k] for row in rows.values()) for k in range(3)]
-        print(f"| all | {total[0]:.1f} | {total[1]:.1f} | {total[2]:.1f} |")
+        print(f"| (every instruction) | {total[0]:.1f} | {total[1]:.1f} | {total[2]:.1f} |")
 
 
 if __name__ == "__main__":
