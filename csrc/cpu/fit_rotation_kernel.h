@@ -151,7 +151,9 @@ TORCHROT_INLINE void prefetch_even_block(const typename L::Scalar* block, int64_
 // init where it uses them: from the tensors themselves on SoA layouts that
 // hold each entry of the block as one vector, else from a copy of the block
 // on the stack (both read before `out`, which may alias them, is written).
-// The result goes through a buffer on the stack to finish and the store.
+// The result goes through a buffer on the stack to finish and the store,
+// except on evenly spaced layouts in blocks that finish would leave as they
+// are, which write it straight to out (one_step_warm_from_memory's `store`).
 // `even`: M's, init's and out's full blocks (kVectors) where all three are
 // evenly spaced (EvenBlocks), else null; on the paper authors' tiles at the
 // kernel's width (all three {9, L::width}) their entries' offsets are
