@@ -233,25 +233,92 @@ inline bool tiles_line_up(const Layout& layout, int width) {
 
 // Where the full blocks of an SoA layout and their entries lie when both
 // are evenly spaced: the block of `width` matrices at `first` (a multiple of
-// the width) starts at block * first, and its entry k at entry * k from there.
-// Then the nine entries of a block are a base pointer and one stride, not
-// nine offsets computed from the Layout.
+// the width) starts at block * first, its entry k at entry * k from there,
+// and, in tiles half a block wide, the second half of that entry `half`
+// further on. Then the nine entries of a block are a base pointer and one
+// stride, not nine offsets computed from the Layout.
 struct EvenBlocks {
   int64_t block = 0, entry = 0;  // both 0: not evenly spaced
-  // The block is one dense run of 9 * width values, entry k at k * width.
+  int64_t half = 0;              // 0: each entry one vector
+  // The block is one dense run of 9 * width values: entry k at k * width, or
+  // its halves at k * width / 2 and 9 * width / 2 further on.
   bool dense() const { return block == 9; }
 };
 
 // Untiled structure of arrays with rows of entries evenly spaced (a permuted
-// (3, 3, N) tensor: entry k at k * N), or tiles of exactly `width` matrices
-// one after another, each entry of a tile one vector (the paper authors'
-// blocks at the kernel's own width: entry k at k * width).
+// (3, 3, N) tensor: entry k at k * N), or tiles of `width` or `width / 2`
+// matrices one after another, each entry of a tile one run of the tile's
+// values (the paper authors' blocks: 8 float matrices, the width of AVX2's
+// vectors and half of AVX-512's).
 inline EvenBlocks even_blocks(const Layout& layout, int width) {
   const int64_t* s = layout.stride;
   if (s[0] != 1 || s[1] != 3 * s[2]) return {};
-  if (layout.tile == 0) return {1, s[2]};
-  if (layout.tile == width && s[2] == width && layout.tile_stride == 9 * width) return {9, width};
+  if (layout.tile == 0) return {1, s[2], 0};
+  if (s[2] != layout.tile || layout.tile_stride != 9 * layout.tile) return {};
+  if (layout.tile == width) return {9, width, 0};
+  if (2 * layout.tile == width && width > 1) return {9, layout.tile, 9 * layout.tile};
   return {};
+}
+
+// Entry k of an evenly spaced block (EvenBlocks) at `block`: at k * kEntry
+// (a constant: the paper authors' dense tiles) or at k * entry (kEntry 0: a
+// stride known at run time), one vector, or with kHalf two halves kHalf apart
+// (tiles half a block wide).
+template <typename L, int64_t kEntry, int64_t kHalf>
+struct EvenEntries {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  int64_t entry = kEntry;
+  TORCHROT_INLINE int64_t offset(int k) const { return k * (kEntry != 0 ? kEntry : entry); }
+  TORCHROT_INLINE V load(const T* block, int k) const {
+    if constexpr (kHalf != 0) {
+      return L::load_halves(block + offset(k), block + offset(k) + kHalf);
+    } else {
+      return L::load(block + offset(k));
+    }
+  }
+  TORCHROT_INLINE void store(V x, T* block, int k) const {
+    if constexpr (kHalf != 0) {
+      L::store_halves(x, block + offset(k), block + offset(k) + kHalf);
+    } else {
+      L::store(x, block + offset(k));
+    }
+  }
+};
+
+// Whether the full blocks of M, init and out (their EvenBlocks) are all evenly
+// spaced in a way with_even_entries reads: each entry one vector in all three,
+// or all three the dense tiles half a block wide.
+inline bool all_even(const EvenBlocks even[3]) {
+  for (int t = 0; t < 3; ++t)
+    if (even[t].entry == 0) return false;
+  if (even[0].half == 0 && even[1].half == 0 && even[2].half == 0) return true;
+  return even[0].half != 0 && even[1].half != 0 && even[2].half != 0;  // all dense: half only comes with tiles
+}
+
+// Calls f(M's, init's and out's EvenEntries, dense) on blocks for which
+// all_even holds: constant offsets where all three are dense tiles of the same
+// width (dense: each block one run of 9 * L::width values), else each
+// tensor's own entry stride.
+template <typename L, typename F>
+TORCHROT_INLINE void with_even_entries(const EvenBlocks even[3], const F& f) {
+  constexpr int64_t kWidth = L::width;
+  if constexpr (kWidth > 1) {
+    if (even[0].dense() && even[1].dense() && even[2].dense()) {
+      if (even[0].half == 0 && even[1].half == 0 && even[2].half == 0) {
+        const EvenEntries<L, kWidth, 0> tile;
+        f(tile, tile, tile, true);
+        return;
+      }
+      if (even[0].half != 0) {  // all three (all_even)
+        const EvenEntries<L, kWidth / 2, 9 * kWidth / 2> half_tile;
+        f(half_tile, half_tile, half_tile, true);
+        return;
+      }
+    }
+  }
+  using Strided = EvenEntries<L, 0, 0>;
+  f(Strided{even[0].entry}, Strided{even[1].entry}, Strided{even[2].entry}, false);
 }
 
 // Whether a layout is contiguous (N, 3, 3).

@@ -155,9 +155,9 @@ TORCHROT_INLINE void prefetch_even_block(const typename L::Scalar* block, int64_
 // except on evenly spaced layouts in blocks that finish would leave as they
 // are, which write it straight to out (one_step_warm_from_memory's `store`).
 // `even`: M's, init's and out's full blocks (kVectors) where all three are
-// evenly spaced (EvenBlocks), else null; on the paper authors' tiles at the
-// kernel's width (all three {9, L::width}) their entries' offsets are
-// constants.
+// evenly spaced with each entry one vector (all_even, no halves), else null;
+// on the paper authors' tiles at the kernel's width (all three {9, L::width})
+// their entries' offsets are constants.
 template <typename L, BlockPath kPath>
 TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, int64_t first, int count,
                                     const EvenBlocks* even, bool diagnostics, int64_t& bad_inits) {
@@ -241,11 +241,58 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
                                        nullptr, options.init_known_clean, options.variant, done);
 }
 
+// The one-step warm update of the full blocks [begin, end) of M, init and
+// out evenly spaced (all_even), for lanes that hold the block's state in
+// registers from the loads to the stores (not L::stream_one_step): as
+// fit_range's first pass with load_block and store_block, each entry read
+// and written at a base pointer and one stride (constant offsets on the
+// paper authors' dense tiles, a block wide or half: with_even_entries), not
+// at offsets computed from the Layout for every block. Returns how many
+// warm starts were bad.
+template <typename L>
+int64_t one_step_even_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end,
+                            const EvenBlocks even[3], bool diagnostics) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  int64_t bad_inits = 0;
+  with_even_entries<L>(even, [&](auto entries_m, auto entries_r, auto entries_out, bool dense) TORCHROT_LAMBDA_INLINE {
+    const auto offset = [](auto entries) TORCHROT_LAMBDA_INLINE {
+      return [entries](int k) TORCHROT_LAMBDA_INLINE { return entries.offset(k); };
+    };
+    for (int64_t first = begin; first < end; first += L::width) {
+      const T* M_block = args.M + even[0].block * first;
+      const T* R0_block = args.init + even[1].block * first;
+      T* out_block = args.out + even[2].block * first;
+      prefetch_even_block<L, 0>(M_block, first, even[0].block * L::width, offset(entries_m), dense);
+      prefetch_even_block<L, 0>(R0_block, first, even[1].block * L::width, offset(entries_r), dense);
+      prefetch_even_block<L, 1>(out_block, first, even[2].block * L::width, offset(entries_out), dense);
+      // Both inputs are in registers before `out` is written: out may alias them.
+      Mat3<V> M, R0;
+      for (int k = 0; k < 9; ++k) {
+        M.a[k] = entries_m.load(M_block, k);
+        R0.a[k] = entries_r.load(R0_block, k);
+      }
+      kernel::LaneState<L> s = kernel::begin_fit<L>(M, &R0, args.options.init_known_clean, nullptr);
+      kernel::advance_one_step<L>(s, args.options.variant, nullptr);
+      const Mat3<V> R = kernel::finish<L>(s);
+      for (int k = 0; k < 9; ++k) entries_out.store(R.a[k], out_block, k);
+      if (L::any(s.bad_init)) {
+        for (int j = 0; j < L::width; ++j) bad_inits += L::lane_set(s.bad_init, j);
+      }
+      if (diagnostics) {
+        for (int j = 0; j < L::width; ++j) store_diagnostics<L>(s, j, args, first + j);
+      }
+    }
+  });
+  return bad_inits;
+}
+
 // Fits matrices [begin, end); returns how many had a bad warm start.
 // kOneStep: max_iter = 1, through kernel::advance_one_step (a code path of its
 // own, so that the block's state stays in registers from the loads to the
-// stores; it timed faster than advance's loop: benchmarks/lab_notes.md), or,
-// for warm starts with L::stream_one_step (AVX2), through one_step_block.
+// stores; it timed faster than advance's loop: benchmarks/lab_notes.md), on
+// evenly spaced layouts through one_step_even_range, or, for warm starts with
+// L::stream_one_step (AVX2), through one_step_block.
 template <typename L, BlockPath kPath, bool kOneStep, bool kCold>
 int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end) {
   using T = typename L::Scalar;
@@ -258,7 +305,11 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
   const EvenBlocks even[3] = {even_blocks(args.m_layout, L::width),
                               kCold ? EvenBlocks{} : even_blocks(args.init_layout, L::width),
                               even_blocks(args.out_layout, L::width)};
-  const bool all_even = kPath == BlockPath::kVectors && !kCold && even[0].entry && even[1].entry && even[2].entry;
+  const bool evenly_spaced = kPath == BlockPath::kVectors && !kCold && all_even(even);
+  const EvenBlocks* even_vectors = evenly_spaced && even[0].half == 0 ? even : nullptr;  // one_step_block's
+  if constexpr (kOneStep && !kCold && !L::stream_one_step && kPath == BlockPath::kVectors && L::width > 1) {
+    if (evenly_spaced) return one_step_even_range<L>(args, begin, end, even, diagnostics);
+  }
   for (int64_t sub = begin; sub < end; sub += kSubChunk) {
     const int64_t sub_end = std::min(end, sub + kSubChunk);
     pending.clear();
@@ -266,7 +317,7 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
     for (int64_t first = sub; first < sub_end; first += L::width) {
       const int count = static_cast<int>(std::min<int64_t>(L::width, sub_end - first));
       if constexpr (kOneStep && !kCold && L::stream_one_step) {
-        one_step_block<L, kPath>(args, first, count, all_even ? even : nullptr, diagnostics, bad_inits);
+        one_step_block<L, kPath>(args, first, count, even_vectors, diagnostics, bad_inits);
         continue;
       }
       // Both inputs are in registers before `out` is written: out may alias them.
@@ -368,26 +419,47 @@ WarmStartCount count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& ar
     const FlushToZero flush_to_zero;  // as the fit that trusts this count computes
     int64_t local_bad = 0, local_unclean = 0;
     run_block_paths<L>(path, begin, end, [&](auto block_path, int64_t b, int64_t e) {
-      for (int64_t first = b; first < e; first += L::width) {
-        const int count = static_cast<int>(std::min<int64_t>(L::width, e - first));
-        Mat3<V> R0;
-        if (block_path.value == BlockPath::kVectors && even.entry != 0) {  // as one_step_block reads it
+      // load(first, count): the warm starts of the block at `first`; one loop per way of reading them.
+      const auto check_blocks = [&](auto load) TORCHROT_LAMBDA_INLINE {
+        for (int64_t first = b; first < e; first += L::width) {
+          const int count = static_cast<int>(std::min<int64_t>(L::width, e - first));
+          const kernel::WarmStartCheck<L> check = kernel::check_warm_start<L>(load(first, count));
+          const typename L::Mask clean = kernel::used_as_is<L>(check, kernel::Tolerances<T>::init_clean);
+          if (!L::all(clean)) {
+            for (int j = 0; j < count; ++j) {
+              local_bad += L::lane_set(check.bad, j);
+              local_unclean += !L::lane_set(clean, j);
+            }
+          }
+        }
+      };
+      // As one_step_block and one_step_even_range read them: entry k of the block at `first` (one
+      // vector, or its halves `even.half` apart).
+      const auto load_even = [&](auto halves) TORCHROT_LAMBDA_INLINE {
+        return [&, halves](int64_t first, int) TORCHROT_LAMBDA_INLINE {
           const T* block = args.init + even.block * first;
           const auto entry = [&](int k) TORCHROT_LAMBDA_INLINE { return k * even.entry; };
           prefetch_even_block<L, 0>(block, first, even.block * L::width, entry, even.dense());
-          for (int k = 0; k < 9; ++k) R0.a[k] = L::load(block + entry(k));
-        } else {
-          R0 = load_block<L, block_path.value>(args.init, args.layout, first, count);
-        }
-        const kernel::WarmStartCheck<L> check = kernel::check_warm_start<L>(R0);
-        const typename L::Mask clean = kernel::used_as_is<L>(check, kernel::Tolerances<T>::init_clean);
-        if (!L::all(clean)) {
-          for (int j = 0; j < count; ++j) {
-            local_bad += L::lane_set(check.bad, j);
-            local_unclean += !L::lane_set(clean, j);
+          Mat3<V> R0;
+          for (int k = 0; k < 9; ++k) {
+            if constexpr (decltype(halves)::value) {
+              R0.a[k] = L::load_halves(block + entry(k), block + even.half + entry(k));
+            } else {
+              R0.a[k] = L::load(block + entry(k));
+            }
           }
+          return R0;
+        };
+      };
+      if (block_path.value == BlockPath::kVectors && even.entry != 0) {
+        if constexpr (L::width > 1) {
+          if (even.half != 0) return check_blocks(load_even(std::true_type{}));
         }
+        return check_blocks(load_even(std::false_type{}));
       }
+      check_blocks([&](int64_t first, int count) TORCHROT_LAMBDA_INLINE {
+        return load_block<L, block_path.value>(args.init, args.layout, first, count);
+      });
     });
     bad += local_bad;
     unclean += local_unclean;
