@@ -28,13 +28,14 @@ kernel runs in the caller's mode, torchrot's flush subnormal results themselves
 (``csrc/cpu/flush_to_zero.h``), so the flag moves the authors' row and leaves torchrot's results
 as they are.
 
-    python benchmarks/authors_kernel.py --source PATH/TO/fast-rotation-fitting [--n 1000000] [--data arap]
+    python benchmarks/authors_kernel.py --source PATH/TO/fast-rotation-fitting [--kernels avx2 avx512] [--n 1000000]
 
-Needs g++ and Eigen's headers (the file includes them; Debian: libeigen3-dev). On an
-AVX2-only machine torchrot runs its AVX2 kernel; ``TORCHROT_CPU_CAPABILITY=avx2`` runs it
-on an AVX-512 machine too, and ``--march haswell`` builds the authors' kernels for such a
-machine (their ``-march=native`` build gets AVX-512VL's 32 vector registers here); the kernels
-in use are printed with the table.
+Needs g++ and Eigen's headers (the file includes them; Debian: libeigen3-dev). Every
+instruction set of ``--kernels`` (default: each of avx2 and avx512 this CPU runs) is timed in
+the same run, interleaved: torchrot's kernel for it (``torchrot.testing.cpu_kernel``) beside the
+authors' kernels built for it (``KERNEL_MARCH``: ``-march=haswell`` for AVX2, their own
+``-march=native`` for AVX-512, where it gets AVX-512VL's 32 vector registers), each ratio
+against the authors' one-step of its own instruction set.
 """
 from __future__ import annotations
 
@@ -51,18 +52,22 @@ from torchrot.bench import apps, data
 from torchrot.bench.accuracy import FAILURE_THRESHOLD, accuracy
 from torchrot.bench.machine import Load, load_average, machine_info
 from torchrot.bench.timing import interleaved_median_seconds
-from torchrot.testing import rotation_svd, soa_view, tiled_view
+from torchrot.testing import available_cpu_kernels, cpu_kernel, rotation_svd, soa_view, tiled_view
 
-__all__ = ["FLAGS", "ONE_STEP", "ITERATED", "TARGETS", "TARGET_LIMITS", "TILE", "blocks", "build", "compile_library",
-           "load", "main"]
+__all__ = ["FLAGS", "ONE_STEP", "ITERATED", "KERNEL_MARCH", "TARGETS", "TARGET_LIMITS", "TILE", "blocks", "build",
+           "compile_library", "load", "main"]
 
 TILE = 8  # the authors' AVX blocks: 8 float32 matrices
 ONE_STEP = "_Z22fit_rotation_small_avxPfS_i"  # int fit_rotation_small_avx(float* M, float* R, int groups)
 ITERATED = "_Z16fit_rotation_avxPfS_i"  # int fit_rotation_avx(float* M, float* R, int groups)
 # The repository's CMakeLists.txt: Release, -mavx2 -march=native -mfpmath=sse, C++11.
 FLAGS = ["-O3", "-DNDEBUG", "-std=c++11", "-mavx2", "-march=native", "-mfpmath=sse", "-w"]
+#: torchrot's CPU kernel -> the -march its rows' authors' kernels are built with: their AVX code
+#: for an AVX2-only machine (haswell: 16 vector registers), and their own build (native), which
+#: gets AVX-512VL's 32 registers on an AVX-512 machine.
+KERNEL_MARCH = {"avx2": "haswell", "avx512": "native"}
 
-# The rows; the authors' one-step on its own layout is the unit of the targets.
+# The rows of each instruction set; the authors' one-step on its own layout is the unit of its targets.
 COPY = "copy_ of M (memory floor)"
 AUTHORS = "authors' one-step, their tiles, in place"
 AUTHORS_ITERATED = "authors' iterated (to tan^2 < 1e-15), their tiles, from the warm starts (copied in)"
@@ -85,7 +90,7 @@ TARGETS = {
 }
 #: torchrot's CPU kernel -> the limits of TARGETS, in order, as multiples of the authors' one-step built
 #: for the same instruction set (issue #44; AVX2 holds 8 floats per register as their AVX code does, in
-#: 16 registers; AVX-512 has 16 floats and 32 registers). Other kernels are held to AVX2's.
+#: 16 registers; AVX-512 has 16 floats and 32 registers).
 TARGET_LIMITS = {
     "avx2": (1.3, 1.4, 1.6, 2.5, 2.5),
     "avx512": (1.0, 1.1, 1.3, 1.8, 1.8),
@@ -95,8 +100,10 @@ TARGET_LIMITS = {
 def compile_library(source: str, eigen: str, folder: str, march: str = "native", debug_info: bool = False) -> str:
     """The path of the authors' kernels compiled into a shared library in
     ``folder``, for ``-march=march`` (their build: native), with debug
-    information if asked (the same code: instruction_profile.py reads it)."""
-    library = os.path.join(folder, "fit_rotation_avx.so")
+    information if asked (the same code: instruction_profile.py reads it);
+    one library per ``march``, so that builds for two instruction sets load
+    side by side."""
+    library = os.path.join(folder, f"fit_rotation_avx_{march}.so")
     flags = [f"-march={march}" if flag == "-march=native" else flag for flag in FLAGS] + (["-g"] if debug_info else [])
     subprocess.run(["g++", *flags, "-fPIC", "-shared", f"-I{eigen}", "-o", library,
                     os.path.join(source, "src", "fit_rotation_avx.cpp")], check=True)
@@ -142,7 +149,8 @@ def iterated_fit(kernel, M_blocks: torch.Tensor, init: torch.Tensor) -> torch.Te
 
 
 def _accuracy_rows(kernels, M: torch.Tensor, init: torch.Tensor) -> dict[str, dict]:
-    """What each computation gives, once, from the same warm starts, against the float64 SVD."""
+    """What each computation gives, once, from the same warm starts, against the float64 SVD
+    (torchrot on the calling thread's CPU kernel)."""
     M64 = M.double()
     exact = rotation_svd(M64)
     M_blocks, R_one = blocks(M), blocks(init)
@@ -165,10 +173,12 @@ def _accuracy_rows(kernels, M: torch.Tensor, init: torch.Tensor) -> dict[str, di
 
 
 def _calls(kernels, M: torch.Tensor, init: torch.Tensor) -> dict:
-    """The timed calls, each on memory of its own. The one-step updates in place
-    feed their results back, as a local-global solver's loop does; the converged
-    fits start from the same warm starts at every call (the authors' iterated
-    kernel, which works in place, gets them copied into its buffer first)."""
+    """The timed calls of one instruction set (torchrot's on the calling
+    thread's CPU kernel), each on memory of its own, ``copy_`` included. The
+    one-step updates in place feed their results back, as a local-global
+    solver's loop does; the converged fits start from the same warm starts at
+    every call (the authors' iterated kernel, which works in place, gets them
+    copied into its buffer first)."""
     groups = M.shape[0] // TILE
     fit, check = torchrot.fit_rotation, torch.ops.torchrot_bench.count_bad_warm_starts
     M_blocks, R_blocks = blocks(M), blocks(init)
@@ -193,19 +203,31 @@ def _calls(kernels, M: torch.Tensor, init: torch.Tensor) -> dict:
     }
 
 
-def _print_targets(ns: dict[str, float], failures: int, steps: float) -> None:
-    authors = ns[AUTHORS]
-    print("\n| target | ns/matrix | x authors' one-step | limit | holds | without the warm-start check |")
-    print("|---|---|---|---|---|---|")
-    limits = TARGET_LIMITS.get(machine_info()["torchrot_kernel"], TARGET_LIMITS["avx2"])
-    for (target, (row, check)), limit in zip(TARGETS.items(), limits, strict=True):
-        ratio = ns[row] / authors
-        holds = ratio <= limit and (failures == 0 or "converged" not in target)
-        without = (ns[row] - ns[check]) / authors
-        print(f"| {target} | {ns[row]:.2f} | {ratio:.2f} | {limit:.1f} | {'yes' if holds else 'no'} | {without:.2f} |")
-    print(f"\nConverged fits' failures (|R - R*|_F > {FAILURE_THRESHOLD:g} against the float64 SVD): {failures}; "
-          f"they take {steps:.2f} Cayley steps per matrix on average (the one-step: 1) and verify the maximum. "
-          "The drift bound (1,000 chained in-place one-steps stay rotations to working precision) is a test: "
+def _on_kernel(kernel: str, call):
+    """``call`` run on torchrot's CPU kernel ``kernel`` (in this thread)."""
+    def run():
+        with cpu_kernel(kernel):
+            return call()
+    return run
+
+
+def _print_targets(ns: dict[str, dict[str, float]], accuracy_rows: dict[str, dict[str, dict]]) -> None:
+    print("\n| target | kernel | ns/matrix | x authors' one-step | limit | holds | without the warm-start check |")
+    print("|---|---|---|---|---|---|---|")
+    for kernel, times in ns.items():
+        converged = accuracy_rows[kernel]["torchrot converged from the warm start"]
+        for (target, (row, check)), limit in zip(TARGETS.items(), TARGET_LIMITS[kernel], strict=True):
+            ratio = times[row] / times[AUTHORS]
+            holds = ratio <= limit and (converged["failures"] == 0 or "converged" not in target)
+            without = (times[row] - times[check]) / times[AUTHORS]
+            print(f"| {target} | {kernel} | {times[row]:.2f} | {ratio:.2f} | {limit:.1f} | {'yes' if holds else 'no'} "
+                  f"| {without:.2f} |")
+    for kernel, rows in accuracy_rows.items():
+        converged = rows["torchrot converged from the warm start"]
+        print(f"\n{kernel}: converged fits' failures (|R - R*|_F > {FAILURE_THRESHOLD:g} against the float64 SVD): "
+              f"{converged['failures']}; they take {converged['steps']:.2f} Cayley steps per matrix on average (the "
+              "one-step: 1) and verify the maximum.")
+    print("\nThe drift bound (1,000 chained in-place one-steps stay rotations to working precision) is a test: "
           "tests/test_warm_start_precision.py.")
 
 
@@ -216,9 +238,9 @@ def main() -> None:
     parser.add_argument("--data", default="arap",
                         help="arap (recorded, paper-scale; the default), elasticity, or a distribution of "
                              "torchrot.testing.make_warm_start (e.g. warm)")
-    parser.add_argument("--march", default="native",
-                        help="the authors' kernels' -march (their build: native); for the table of an AVX2-only "
-                             "machine on an AVX-512 one: --march haswell with TORCHROT_CPU_CAPABILITY=avx2")
+    parser.add_argument("--kernels", nargs="+", choices=sorted(KERNEL_MARCH),
+                        help="torchrot's CPU kernels to time, each beside the authors' kernels built for its "
+                             "instruction set (KERNEL_MARCH), all in one run; default: those this CPU runs")
     parser.add_argument("--flush-denormal", action="store_true",
                         help="run everything (both kernels) under torch.set_flush_denormal(True): subnormal "
                              "numbers flushed to zero, which recorded solver data otherwise meet inside a step")
@@ -226,33 +248,48 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=9)
     parser.add_argument("--min-time", type=float, default=0.3)
     args = parser.parse_args()
-    torch.set_num_threads(1)  # every call runs in this thread, in its floating-point mode
+    available = available_cpu_kernels()
+    kernel_names = args.kernels or [kernel for kernel in KERNEL_MARCH if kernel in available]
+    if not kernel_names:
+        parser.error(f"this CPU runs none of torchrot's kernels {sorted(KERNEL_MARCH)} (it runs {available})")
+    missing = [kernel for kernel in kernel_names if kernel not in available]
+    if missing:
+        parser.error(f"--kernels: this CPU does not run {missing} (it runs {list(available)})")
+    torch.set_num_threads(1)  # every call runs in this thread, in its floating-point mode and on its kernel
     if args.flush_denormal and not torch.set_flush_denormal(True):
         parser.error("--flush-denormal: this CPU has no flush-to-zero mode")
     n = args.n - args.n % TILE
     M, init = data.pairs(args.data, n, torch.float32, configs={"arap": apps.FULL.arap})
+    calls, accuracy_rows = {}, {}
     with tempfile.TemporaryDirectory() as folder:
-        kernels = build(args.source, args.eigen, folder, args.march)
-        rows = _accuracy_rows(kernels, M, init)
+        for kernel in kernel_names:
+            kernels = build(args.source, args.eigen, folder, KERNEL_MARCH[kernel])
+            with cpu_kernel(kernel):
+                accuracy_rows[kernel] = _accuracy_rows(kernels, M, init)
+            for row, call in _calls(kernels, M, init).items():
+                calls[(kernel, row)] = _on_kernel(kernel, call)
         before = load_average()
-        seconds = interleaved_median_seconds(_calls(kernels, M, init), args.rounds, args.min_time)
+        seconds = interleaved_median_seconds(calls, args.rounds, args.min_time)
         load = Load.around(before)
-    ns = {name: s / n * 1e9 for name, s in seconds.items()}
+    ns = {kernel: {row: seconds[(kernel, row)] / n * 1e9 for (k, row) in seconds if k == kernel}
+          for kernel in kernel_names}
     print(f"# The paper authors' kernels beside torchrot\n\nMachine: {machine_info()}\n")
-    print(f"N = {n:,} float32 matrices ({args.data}), 1 thread, medians of {args.rounds} interleaved rounds "
-          f"(torchrot kernel {machine_info()['torchrot_kernel']}, the authors' built with -march={args.march}"
-          f"{'; subnormal numbers flushed to zero' if args.flush_denormal else ''}); "
-          f"{load.line()}:\n")
-    print("| call | ns/matrix | x copy_ | x authors' one-step |\n|---|---|---|---|")
-    for name, value in ns.items():
-        print(f"| {name} | {value:.2f} | {value / ns[COPY]:.2f} | {value / ns[AUTHORS]:.2f} |")
+    builds = ", ".join(f"{kernel} beside -march={KERNEL_MARCH[kernel]}" for kernel in kernel_names)
+    print(f"N = {n:,} float32 matrices ({args.data}), 1 thread, medians of {args.rounds} rounds, every row of "
+          f"every instruction set interleaved in one process (torchrot's kernel {builds}"
+          f"{'; subnormal numbers flushed to zero' if args.flush_denormal else ''}); {load.line()}:\n")
+    print("| call | kernel | ns/matrix | x copy_ | x authors' one-step |\n|---|---|---|---|---|")
+    for kernel, times in ns.items():
+        for name, value in times.items():
+            print(f"| {name} | {kernel} | {value:.2f} | {value / times[COPY]:.2f} | {value / times[AUTHORS]:.2f} |")
     print("\nAgainst the float64 SVD, from the same warm starts:\n")
-    print("| computation | max abs(R - R*)_F | median | failures | max abs(R^T R - I)_F |\n|---|---|---|---|---|")
-    for name, row in rows.items():
-        print(f"| {name} | {row['max_error']:.1e} | {row['median_error']:.1e} | {row['failures']} "
-              f"| {row['orthonormality']:.1e} |")
-    converged = rows["torchrot converged from the warm start"]
-    _print_targets(ns, converged["failures"], converged["steps"])
+    print("| computation | kernel | max abs(R - R*)_F | median | failures | max abs(R^T R - I)_F |")
+    print("|---|---|---|---|---|---|")
+    for kernel, rows in accuracy_rows.items():
+        for name, row in rows.items():
+            print(f"| {name} | {kernel} | {row['max_error']:.1e} | {row['median_error']:.1e} | {row['failures']} "
+                  f"| {row['orthonormality']:.1e} |")
+    _print_targets(ns, accuracy_rows)
 
 
 if __name__ == "__main__":
