@@ -270,6 +270,8 @@ struct EvenEntries {
   using V = typename L::V;
   int64_t entry = kEntry;
   TORCHROT_INLINE int64_t offset(int k) const { return k * (kEntry != 0 ? kEntry : entry); }
+  // The offset as a function of k (prefetch_even_block's `entry`).
+  TORCHROT_INLINE int64_t operator()(int k) const { return offset(k); }
   TORCHROT_INLINE V load(const T* block, int k) const {
     if constexpr (kHalf != 0) {
       return L::load_halves(block + offset(k), block + offset(k) + kHalf);
@@ -285,6 +287,13 @@ struct EvenEntries {
     }
   }
 };
+
+// The entries of the paper authors' dense tiles a block wide, and half a
+// block wide (EvenBlocks{9, width / 2, 9 * width / 2}).
+template <typename L>
+using TileEntries = EvenEntries<L, L::width, 0>;
+template <typename L>
+using HalfTileEntries = EvenEntries<L, L::width / 2, 9 * L::width / 2>;
 
 // Whether the full blocks of M, init and out (their EvenBlocks) are all evenly
 // spaced in a way with_even_entries reads: each entry one vector in all three,
@@ -302,16 +311,15 @@ inline bool all_even(const EvenBlocks even[3]) {
 // tensor's own entry stride.
 template <typename L, typename F>
 TORCHROT_INLINE void with_even_entries(const EvenBlocks even[3], const F& f) {
-  constexpr int64_t kWidth = L::width;
-  if constexpr (kWidth > 1) {
+  if constexpr (L::width > 1) {
     if (even[0].dense() && even[1].dense() && even[2].dense()) {
       if (even[0].half == 0 && even[1].half == 0 && even[2].half == 0) {
-        const EvenEntries<L, kWidth, 0> tile;
+        const TileEntries<L> tile;
         f(tile, tile, tile, true);
         return;
       }
       if (even[0].half != 0) {  // all three (all_even)
-        const EvenEntries<L, kWidth / 2, 9 * kWidth / 2> half_tile;
+        const HalfTileEntries<L> half_tile;
         f(half_tile, half_tile, half_tile, true);
         return;
       }

@@ -146,6 +146,20 @@ TORCHROT_INLINE void prefetch_even_block(const typename L::Scalar* block, int64_
   for (int k = 0; k < 9; ++k) __builtin_prefetch(ahead + entry(k), kWrite);
 }
 
+// After a one-step block (no lane left running): its bad warm starts added
+// to `bad_inits`, and the iterations and status of its first `count` lanes
+// stored where the caller asked for them.
+template <typename L>
+TORCHROT_INLINE void account_one_step_block(const kernel::LaneState<L>& s, const BatchArgs<typename L::Scalar>& args,
+                                            int64_t first, int count, bool diagnostics, int64_t& bad_inits) {
+  if (L::any(s.bad_init)) {
+    for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
+  }
+  if (diagnostics) {
+    for (int j = 0; j < count; ++j) store_diagnostics<L>(s, j, args, first + j);
+  }
+}
+
 // The one-step warm update of the block at `first` through
 // kernel::one_step_warm_from_memory (L::stream_one_step), which reads M and
 // init where it uses them: from the tensors themselves on SoA layouts that
@@ -165,12 +179,7 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
   using V = typename L::V;
   alignas(64) T q[9 * L::width];
   const auto account = [&](const kernel::LaneState<L>& s) TORCHROT_LAMBDA_INLINE {
-    if (L::any(s.bad_init)) {
-      for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
-    }
-    if (diagnostics) {
-      for (int j = 0; j < count; ++j) store_diagnostics<L>(s, j, args, first + j);
-    }
+    account_one_step_block<L>(s, args, first, count, diagnostics, bad_inits);
   };
   const FitOptions& options = args.options;
   if constexpr (kPath == BlockPath::kVectors) {
@@ -256,16 +265,13 @@ int64_t one_step_even_range(const BatchArgs<typename L::Scalar>& args, int64_t b
   using V = typename L::V;
   int64_t bad_inits = 0;
   with_even_entries<L>(even, [&](auto entries_m, auto entries_r, auto entries_out, bool dense) TORCHROT_LAMBDA_INLINE {
-    const auto offset = [](auto entries) TORCHROT_LAMBDA_INLINE {
-      return [entries](int k) TORCHROT_LAMBDA_INLINE { return entries.offset(k); };
-    };
     for (int64_t first = begin; first < end; first += L::width) {
       const T* M_block = args.M + even[0].block * first;
       const T* R0_block = args.init + even[1].block * first;
       T* out_block = args.out + even[2].block * first;
-      prefetch_even_block<L, 0>(M_block, first, even[0].block * L::width, offset(entries_m), dense);
-      prefetch_even_block<L, 0>(R0_block, first, even[1].block * L::width, offset(entries_r), dense);
-      prefetch_even_block<L, 1>(out_block, first, even[2].block * L::width, offset(entries_out), dense);
+      prefetch_even_block<L, 0>(M_block, first, even[0].block * L::width, entries_m, dense);
+      prefetch_even_block<L, 0>(R0_block, first, even[1].block * L::width, entries_r, dense);
+      prefetch_even_block<L, 1>(out_block, first, even[2].block * L::width, entries_out, dense);
       // Both inputs are in registers before `out` is written: out may alias them.
       Mat3<V> M, R0;
       for (int k = 0; k < 9; ++k) {
@@ -276,12 +282,7 @@ int64_t one_step_even_range(const BatchArgs<typename L::Scalar>& args, int64_t b
       kernel::advance_one_step<L>(s, args.options.variant, nullptr);
       const Mat3<V> R = kernel::finish<L>(s);
       for (int k = 0; k < 9; ++k) entries_out.store(R.a[k], out_block, k);
-      if (L::any(s.bad_init)) {
-        for (int j = 0; j < L::width; ++j) bad_inits += L::lane_set(s.bad_init, j);
-      }
-      if (diagnostics) {
-        for (int j = 0; j < L::width; ++j) store_diagnostics<L>(s, j, args, first + j);
-      }
+      account_one_step_block<L>(s, args, first, L::width, diagnostics, bad_inits);
     }
   });
   return bad_inits;
@@ -433,29 +434,21 @@ WarmStartCount count_bad_warm_starts(const WarmStartArgs<typename L::Scalar>& ar
           }
         }
       };
-      // As one_step_block and one_step_even_range read them: entry k of the block at `first` (one
-      // vector, or its halves `even.half` apart).
-      const auto load_even = [&](auto halves) TORCHROT_LAMBDA_INLINE {
-        return [&, halves](int64_t first, int) TORCHROT_LAMBDA_INLINE {
+      // As one_step_block and one_step_even_range read them (`entries`: EvenEntries).
+      const auto load_even = [&](auto entries) TORCHROT_LAMBDA_INLINE {
+        return [&, entries](int64_t first, int) TORCHROT_LAMBDA_INLINE {
           const T* block = args.init + even.block * first;
-          const auto entry = [&](int k) TORCHROT_LAMBDA_INLINE { return k * even.entry; };
-          prefetch_even_block<L, 0>(block, first, even.block * L::width, entry, even.dense());
+          prefetch_even_block<L, 0>(block, first, even.block * L::width, entries, even.dense());
           Mat3<V> R0;
-          for (int k = 0; k < 9; ++k) {
-            if constexpr (decltype(halves)::value) {
-              R0.a[k] = L::load_halves(block + entry(k), block + even.half + entry(k));
-            } else {
-              R0.a[k] = L::load(block + entry(k));
-            }
-          }
+          for (int k = 0; k < 9; ++k) R0.a[k] = entries.load(block, k);
           return R0;
         };
       };
       if (block_path.value == BlockPath::kVectors && even.entry != 0) {
-        if constexpr (L::width > 1) {
-          if (even.half != 0) return check_blocks(load_even(std::true_type{}));
+        if constexpr (L::width > 1) {  // tiles half a block wide: as with_even_entries reads them
+          if (even.half != 0) return check_blocks(load_even(HalfTileEntries<L>{}));
         }
-        return check_blocks(load_even(std::false_type{}));
+        return check_blocks(load_even(EvenEntries<L, 0, 0>{even.entry}));
       }
       check_blocks([&](int64_t first, int count) TORCHROT_LAMBDA_INLINE {
         return load_block<L, block_path.value>(args.init, args.layout, first, count);
