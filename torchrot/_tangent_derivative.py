@@ -46,20 +46,20 @@ def _compute(*tensors: torch.Tensor) -> list[torch.Tensor]:
 
 
 def _matvec(A: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """A v for ``(..., 3, 3)`` A and ``(..., 3)`` v. Traced by torch.compile,
-    as a broadcast product summed: dynamo fails on a matmul of a forward-AD
-    dual with a plain tensor under vmap (pytorch/pytorch#151196). Eagerly a
-    matmul (the broadcast products took twice as long)."""
-    if torch.compiler.is_compiling():
-        return (A * v.unsqueeze(-2)).sum(-1)
-    return (A @ v.unsqueeze(-1)).squeeze(-1)
+    """A v for ``(..., 3, 3)`` A and ``(..., 3)`` v, as three broadcast
+    products added in one order: each entry the same whatever the batch
+    around it. (A batched matmul may sum in another order for another batch
+    size: vmap's Hessian differed from the unbatched one in the last bits on
+    a CPU whose BLAS did so. Dynamo also fails on a matmul of a forward-AD
+    dual with a plain tensor under vmap, pytorch/pytorch#151196.)"""
+    return A[..., 0] * v[..., 0, None] + A[..., 1] * v[..., 1, None] + A[..., 2] * v[..., 2, None]
 
 
 def _transpose_times(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
-    """A^T B for ``(..., 3, 3)`` A and B (as _matvec: broadcast products while compiled)."""
-    if torch.compiler.is_compiling():
-        return (A.unsqueeze(-1) * B.unsqueeze(-2)).sum(-3)
-    return A.mT @ B
+    """A^T B for ``(..., 3, 3)`` A and B, row k of A times row k of B added
+    over k in one order (as _matvec)."""
+    return (A[..., 0, :, None] * B[..., 0, None, :] + A[..., 1, :, None] * B[..., 1, None, :]
+            + A[..., 2, :, None] * B[..., 2, None, :])
 
 
 def _vex_skew(B: torch.Tensor) -> torch.Tensor:

@@ -34,6 +34,7 @@ struct ScalarLanes {
   static constexpr int width = 1;
   static constexpr bool fused_multiply_add = true;  // mul_add.h: std::fma
   static constexpr bool stream_one_step = false;    // see VectorLanes
+  static constexpr bool integer_max = false;        // see VectorLanes
 
   static V load(const T* p) { return *p; }
   static void store(V v, T* p) { *p = v; }
@@ -253,6 +254,29 @@ struct VectorLanes : Masks<T> {
   // x86's max(lo, x) and min(hi, x) return x when it is NaN, as NEON's and
   // std::max / std::min (the generic one) do.
   static V clamp(V x, V lo, V hi) { return at::vec::clamp(x, lo, hi); }
+  // The larger of two values whose sign bits are clear (absolute values), a
+  // NaN where either is a NaN, as one integer maximum of their bits: those of
+  // a non-negative number order as its value, and a NaN's lie above +Inf's.
+  // integer_max: where the instruction set has that maximum for T's width
+  // (AVX-512; AVX2 for float); max_abs_entry's other way elsewhere.
+#if defined(CPU_CAPABILITY_AVX512)
+  static constexpr bool integer_max = true;
+  static V max_nonnegative(V a, V b) {
+    if constexpr (std::is_same_v<T, float>) {
+      return _mm512_castsi512_ps(_mm512_max_epi32(_mm512_castps_si512(a), _mm512_castps_si512(b)));
+    } else {
+      return _mm512_castsi512_pd(_mm512_max_epi64(_mm512_castpd_si512(a), _mm512_castpd_si512(b)));
+    }
+  }
+#elif defined(CPU_CAPABILITY_AVX2)
+  static constexpr bool integer_max = std::is_same_v<T, float>;
+  static V max_nonnegative(V a, V b) {
+    static_assert(std::is_same_v<T, float>, "AVX2 has no 64-bit integer maximum");
+    return _mm256_castsi256_ps(_mm256_max_epi32(_mm256_castps_si256(a), _mm256_castps_si256(b)));
+  }
+#else
+  static constexpr bool integer_max = false;
+#endif
   static Mask is_finite(V x) { return Masks<T>::lt(x.abs(), V(std::numeric_limits<T>::infinity())); }
   static T lane(V v, int i) {
     T buf[width];
@@ -317,6 +341,7 @@ struct PairedLanes {
   static constexpr int width = 2 * half;
   static constexpr bool fused_multiply_add = Base::fused_multiply_add;
   static constexpr bool stream_one_step = false;  // the derivative kernel's lanes: no fits
+  static constexpr bool integer_max = Base::integer_max;
   using HalfLanes = Base;
 
   static V load(const T* p) { return {Base::load(p), Base::load(p + half)}; }
@@ -331,6 +356,9 @@ struct PairedLanes {
   static V min(V a, V b) { return {Base::min(a.lo, b.lo), Base::min(a.hi, b.hi)}; }
   static V clamp(V x, V lo, V hi) { return {Base::clamp(x.lo, lo.lo, hi.lo), Base::clamp(x.hi, lo.hi, hi.hi)}; }
   static V max_number(V a, V b) { return {Base::max_number(a.lo, b.lo), Base::max_number(a.hi, b.hi)}; }
+  static V max_nonnegative(V a, V b) {
+    return {Base::max_nonnegative(a.lo, b.lo), Base::max_nonnegative(a.hi, b.hi)};
+  }
   static V min_number(V a, V b) { return {Base::min_number(a.lo, b.lo), Base::min_number(a.hi, b.hi)}; }
   static Mask unordered(V a, V b) { return {Base::unordered(a.lo, b.lo), Base::unordered(a.hi, b.hi)}; }
   static Mask lt(V a, V b) { return {Base::lt(a.lo, b.lo), Base::lt(a.hi, b.hi)}; }
@@ -364,16 +392,22 @@ struct IsPaired : std::false_type {};
 template <typename L>
 struct IsPaired<L, std::void_t<typename L::HalfLanes>> : std::true_type {};
 
-// max |A_ij| over a matrix's entries, NaN where one is NaN (the value L::max
-// gives folded over them). As a tree of max_number (whose result with a NaN
-// operand is unspecified: one instruction) with the NaN test apart, instead of
-// a chain of nine NaN-propagating maxima: a third of the instructions, and 4
-// maxima deep instead of 9 at the head of every block's dependency chain.
+// max |A_ij| over a matrix's entries, a NaN where one is NaN (the value L::max
+// gives folded over them, up to the NaN's payload, which no result carries:
+// such lanes do not run). As a tree, 4 maxima deep instead of 9 at the head
+// of every block's dependency chain: of max_nonnegative where it is one
+// instruction (L::integer_max), else of max_number (whose result with a NaN
+// operand is unspecified: one instruction) with the NaN test apart; either
+// is a third of the instructions of nine NaN-propagating maxima.
 template <typename L>
 TORCHROT_INLINE typename L::V max_abs_entry(const Mat3<typename L::V>& A) {
   using V = typename L::V;
   V a[9];
   for (int k = 0; k < 9; ++k) a[k] = L::abs(A.a[k]);
+  if constexpr (L::integer_max) {
+    const auto max = [](V x, V y) TORCHROT_LAMBDA_INLINE { return L::max_nonnegative(x, y); };
+    return max(max(max(max(a[0], a[1]), max(a[2], a[3])), max(max(a[4], a[5]), max(a[6], a[7]))), a[8]);
+  }
   const V top = L::max_number(L::max_number(L::max_number(a[0], a[1]), L::max_number(a[2], a[3])),
                               L::max_number(L::max_number(a[4], a[5]), L::max_number(a[6], a[7])));
   const auto nan =
