@@ -356,9 +356,7 @@ struct PairedLanes {
   static V min(V a, V b) { return {Base::min(a.lo, b.lo), Base::min(a.hi, b.hi)}; }
   static V clamp(V x, V lo, V hi) { return {Base::clamp(x.lo, lo.lo, hi.lo), Base::clamp(x.hi, lo.hi, hi.hi)}; }
   static V max_number(V a, V b) { return {Base::max_number(a.lo, b.lo), Base::max_number(a.hi, b.hi)}; }
-  static V max_nonnegative(V a, V b) {
-    return {Base::max_nonnegative(a.lo, b.lo), Base::max_nonnegative(a.hi, b.hi)};
-  }
+  static V max_nonnegative(V a, V b) { return {Base::max_nonnegative(a.lo, b.lo), Base::max_nonnegative(a.hi, b.hi)}; }
   static V min_number(V a, V b) { return {Base::min_number(a.lo, b.lo), Base::min_number(a.hi, b.hi)}; }
   static Mask unordered(V a, V b) { return {Base::unordered(a.lo, b.lo), Base::unordered(a.hi, b.hi)}; }
   static Mask lt(V a, V b) { return {Base::lt(a.lo, b.lo), Base::lt(a.hi, b.hi)}; }
