@@ -178,30 +178,38 @@ def _accuracy_rows(kernels, M: torch.Tensor, init: torch.Tensor) -> dict[str, di
     return rows
 
 
+def _authors_calls(kernels, M: torch.Tensor, init: torch.Tensor) -> dict:
+    """The timed calls of the authors' kernels (their one-step in place, fed
+    back as a local-global solver's loop does; their iterated kernel from the
+    same warm starts at every call, copied into its buffer first), each on
+    memory of its own."""
+    groups = M.shape[0] // TILE
+    M_blocks, R_blocks = blocks(M), blocks(init)
+    R_iterated_start, R_iterated = blocks(init.mT), blocks(init.mT)
+    return {
+        AUTHORS: lambda: kernels["one-step"](M_blocks.data_ptr(), R_blocks.data_ptr(), groups),
+        AUTHORS_ITERATED: lambda: (R_iterated.copy_(R_iterated_start),
+                                   kernels["iterated"](M_blocks.data_ptr(), R_iterated.data_ptr(), groups)),
+    }
+
+
 def _calls(kernels, M: torch.Tensor, init: torch.Tensor) -> dict:
     """The timed calls of one instruction set (torchrot's on the calling
     thread's CPU kernel), each on memory of its own, ``copy_`` included. The
     one-step updates in place feed their results back, as a local-global
     solver's loop does; the converged fits start from the same warm starts at
-    every call (the authors' iterated kernel, which works in place, gets them
-    copied into its buffer first)."""
-    groups = M.shape[0] // TILE
+    every call. The authors' calls (_authors_calls) twice: as they ship and
+    flushed (FLUSHED)."""
     fit, check = torchrot.fit_rotation, torch.ops.torchrot_bench.count_bad_warm_starts
-    M_blocks, R_blocks = blocks(M), blocks(init)
-    R_iterated_start, R_iterated = blocks(init.mT), blocks(init.mT)
     M_tiles, R_tiles = tiled_view(M, TILE), tiled_view(init, TILE)
     R_tiles_start, R_tiles_converged = tiled_view(init, TILE), tiled_view(init, TILE)
     M_soa, R_soa = soa_view(M), soa_view(init)
     buffer, out, out_converged = torch.empty_like(M), init.clone(), init.clone()
-    authors = {
-        AUTHORS: lambda: kernels["one-step"](M_blocks.data_ptr(), R_blocks.data_ptr(), groups),
-        AUTHORS_ITERATED: lambda: (R_iterated.copy_(R_iterated_start),
-                                   kernels["iterated"](M_blocks.data_ptr(), R_iterated.data_ptr(), groups)),
-    }
+    flushed = {FLUSHED[row]: _flushed(call) for row, call in _authors_calls(kernels, M, init).items()}
     return {
         COPY: lambda: buffer.copy_(M),
-        **authors,
-        **{FLUSHED[row]: _flushed(call) for row, call in authors.items()},
+        **_authors_calls(kernels, M, init),
+        **flushed,
         TILES: lambda: fit(M_tiles, R_tiles, max_iter=1, out=R_tiles),
         SOA: lambda: fit(M_soa, R_soa, max_iter=1, out=R_soa),
         OUT: lambda: fit(M, init, max_iter=1, out=out),

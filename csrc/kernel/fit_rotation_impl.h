@@ -295,9 +295,9 @@ TORCHROT_INLINE void advance_one_step(LaneState<L>& s, Variant variant, const ty
 // start to clean up; rare) take the general path.
 // `store`: store(k, v) writes entry k of the block's result where it goes
 // (memory that aliases M or init exactly, if at all: each row of R0 is read
-// before that row is written), or nullptr. Where finish would change nothing
-// (every lane runs and none took a large step), the rows go there instead
-// of to q, and done(state, true) is called with state.R unset; else
+// before that row is written), or nullptr. Where every lane takes the step
+// and finish would change nothing (none took a large step), the rows go there
+// instead of to q, and done(state, true) is called with state.R unset; else
 // done(state, false).
 template <typename L, typename LoadM, typename LoadR, typename Store, typename Done>
 TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Scalar* q, Store store,
@@ -344,39 +344,53 @@ TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Sca
   const Mask running = L::mask_and(finite, L::mask_not(bad_init));
   const Mask stepping = L::mask_and(running, can_take<L>(step));
   const Mat3<V> K = cayley_increment(step);
-  bool as_computed = false;  // finish would change nothing (it cleans up large steps, NaNs the lanes not running)
+  // Every lane takes the step, and finish would change nothing (it cleans up
+  // large steps, NaNs the lanes not running): the rows are written as
+  // rotated, with no select.
+  bool as_computed = false;
   if constexpr (!std::is_same_v<Store, std::nullptr_t>) {
     const Mask large = L::mask_not(step.template smaller_than<L>(Tol::large_step));
-    as_computed = L::all(running) && !L::any(L::mask_and(stepping, large));
+    as_computed = L::all(stepping) && !L::any(large);
   }
-  const auto write_rows = [&](auto write) TORCHROT_LAMBDA_INLINE {
+  // kSelect: the lanes not stepping keep their row of R0.
+  const auto write_rows = [&](auto write, auto kSelect) TORCHROT_LAMBDA_INLINE {
     for (int i = 0; i < 3; ++i) {
       V row[3], rotated[3];
       for (int c = 0; c < 3; ++c) row[c] = r(3 * i + c);
       rotate_row_by(row, K, rotated);
-      for (int c = 0; c < 3; ++c) write(3 * i + c, L::select(stepping, rotated[c], row[c]));
+      for (int c = 0; c < 3; ++c) write(3 * i + c, kSelect ? L::select(stepping, rotated[c], row[c]) : rotated[c]);
     }
   };
   TORCHROT_MEMORY_BARRIER();
   if constexpr (!std::is_same_v<Store, std::nullptr_t>) {
-    if (as_computed) write_rows(store);
+    if (as_computed) write_rows(store, std::false_type{});
   }
-  if (!as_computed) write_rows([&](int k, V x) TORCHROT_LAMBDA_INLINE { L::store(x, q + k * L::width); });
+  if (!as_computed) {
+    write_rows([&](int k, V x) TORCHROT_LAMBDA_INLINE { L::store(x, q + k * L::width); }, std::true_type{});
+  }
   TORCHROT_MEMORY_BARRIER();
   // begin_fit's state for these lanes (no M = 0: those are apart), set after
-  // the barriers (which would otherwise keep it in memory). s.A, read only by
-  // fallback lanes, which one step never makes, is left unset.
+  // the barriers (which would otherwise keep it in memory), after the step.
+  // s.A, read only by fallback lanes, which one step never makes, is left
+  // unset.
   LaneState<L> s;
-  if (!as_computed) {
-    for (int k = 0; k < 9; ++k) s.R.a[k] = L::load(q + k * L::width);
+  s.escapes = V(0);
+  s.switched = s.fallback = s.running = L::all_false();
+  if (as_computed) {
+    // Every lane ran and took a step that was not large: count_step's
+    // counts, known here (no mask to read, no bad warm start to count).
+    s.iterations = s.attempt_steps = V(1);
+    s.large_step = s.bad_init = s.non_finite = L::all_false();
+    done(s, true);
+    return;
   }
-  s.iterations = s.attempt_steps = s.escapes = V(0);
-  s.switched = s.fallback = s.large_step = L::all_false();
+  for (int k = 0; k < 9; ++k) s.R.a[k] = L::load(q + k * L::width);
+  s.iterations = s.attempt_steps = V(0);
+  s.large_step = L::all_false();
   s.bad_init = bad_init;
   s.non_finite = L::mask_not(finite);
   count_step<L>(s, step, stepping);
-  s.running = L::all_false();
-  done(s, as_computed);
+  done(s, false);
 }
 
 // The fallback lanes of R, solved exactly (rare: out of line).
