@@ -165,9 +165,10 @@ TORCHROT_INLINE void account_one_step_block(const kernel::LaneState<L>& s, const
 // init where it uses them: from the tensors themselves on SoA layouts that
 // hold each entry of the block as one vector, else from a copy of the block
 // on the stack (both read before `out`, which may alias them, is written).
-// The result goes through a buffer on the stack to finish and the store,
-// except on evenly spaced layouts in blocks that finish would leave as they
-// are, which write it straight to out (one_step_warm_from_memory's `store`).
+// The result goes through a buffer on the stack (q) to the store, and
+// through finish in blocks where finish has something to do; on evenly
+// spaced layouts, the blocks where it has not write it straight to out
+// (one_step_warm_from_memory's `store`).
 // `even`: M's, init's and out's full blocks (kVectors) where all three are
 // evenly spaced with each entry one vector (all_even, no halves), else null;
 // on the paper authors' tiles at the kernel's width (all three {9, L::width})
@@ -215,8 +216,17 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
       return;
     }
   }
-  const auto done = [&](const kernel::LaneState<L>& s, bool) TORCHROT_LAMBDA_INLINE {  // no store: never stored
-    store_block<L, kPath>(kernel::finish<L, false>(s), args.out, args.out_layout, first, count);
+  // The rows go to q either way; `stored`: as computed (one_step_warm_from_memory's
+  // `store`), with nothing for finish to do.
+  const auto store_q = [&](int k, V x) TORCHROT_LAMBDA_INLINE { L::store(x, q + k * L::width); };
+  const auto done = [&](const kernel::LaneState<L>& s, bool stored) TORCHROT_LAMBDA_INLINE {
+    Mat3<V> R;
+    if (stored) {
+      for (int k = 0; k < 9; ++k) R.a[k] = L::load(q + k * L::width);
+    } else {
+      R = kernel::finish<L, false>(s);
+    }
+    store_block<L, kPath>(R, args.out, args.out_layout, first, count);
     account(s);
   };
   if constexpr (kPath == BlockPath::kVectors) {
@@ -232,7 +242,7 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
       }
       const auto m = [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(M + entry_offset(args.m_layout, k)); };
       const auto r = [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(R0 + entry_offset(args.init_layout, k)); };
-      kernel::one_step_warm_from_memory<L>(m, r, q, nullptr, options.init_known_clean, options.variant, done);
+      kernel::one_step_warm_from_memory<L>(m, r, q, store_q, options.init_known_clean, options.variant, done);
       return;
     }
   }
@@ -247,7 +257,7 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
   }
   kernel::one_step_warm_from_memory<L>([&](int k) TORCHROT_LAMBDA_INLINE { return L::load(m + k * L::width); },
                                        [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(r + k * L::width); }, q,
-                                       nullptr, options.init_known_clean, options.variant, done);
+                                       store_q, options.init_known_clean, options.variant, done);
 }
 
 // The one-step warm update of the full blocks [begin, end) of M, init and

@@ -295,10 +295,10 @@ TORCHROT_INLINE void advance_one_step(LaneState<L>& s, Variant variant, const ty
 // start to clean up; rare) take the general path.
 // `store`: store(k, v) writes entry k of the block's result where it goes
 // (memory that aliases M or init exactly, if at all: each row of R0 is read
-// before that row is written), or nullptr. Where every lane takes the step
-// and finish would change nothing (none took a large step), the rows go there
-// instead of to q, and done(state, true) is called with state.R unset; else
-// done(state, false).
+// before that row is written; q itself, where the caller moves the result on
+// from there). Where every lane takes the step and finish would change
+// nothing (none took a large step), the rows go there instead of to q, and
+// done(state, true) is called with state.R unset; else done(state, false).
 template <typename L, typename LoadM, typename LoadR, typename Store, typename Done>
 TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Scalar* q, Store store,
                                                bool init_known_clean, Variant variant, Done done) {
@@ -347,11 +347,7 @@ TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Sca
   // Every lane takes the step, and finish would change nothing (it cleans up
   // large steps, NaNs the lanes not running): the rows are written as
   // rotated, with no select.
-  bool as_computed = false;
-  if constexpr (!std::is_same_v<Store, std::nullptr_t>) {
-    const Mask large = L::mask_not(step.template smaller_than<L>(Tol::large_step));
-    as_computed = L::all(stepping) && !L::any(large);
-  }
+  const bool as_computed = L::all(stepping) && !L::any(L::mask_not(step.template smaller_than<L>(Tol::large_step)));
   // kSelect: the lanes not stepping keep their row of R0.
   const auto write_rows = [&](auto write, auto kSelect) TORCHROT_LAMBDA_INLINE {
     for (int i = 0; i < 3; ++i) {
@@ -362,10 +358,9 @@ TORCHROT_INLINE void one_step_warm_from_memory(LoadM m, LoadR r, typename L::Sca
     }
   };
   TORCHROT_MEMORY_BARRIER();
-  if constexpr (!std::is_same_v<Store, std::nullptr_t>) {
-    if (as_computed) write_rows(store, std::false_type{});
-  }
-  if (!as_computed) {
+  if (as_computed) {
+    write_rows(store, std::false_type{});
+  } else {
     write_rows([&](int k, V x) TORCHROT_LAMBDA_INLINE { L::store(x, q + k * L::width); }, std::true_type{});
   }
   TORCHROT_MEMORY_BARRIER();
