@@ -26,7 +26,7 @@ from isa_helpers import (
 )
 
 from torchrot._constants import VARIANTS
-from torchrot.testing import CRITERIA, dtype_id, rotation_errors
+from torchrot.testing import CRITERIA, dtype_id, random_rotations, rotation_errors
 
 # mode id -> max_iter
 MODES = {"converged": None, "iter1": 1, "iter3": 3}
@@ -111,3 +111,41 @@ def test_two_rounding_kernel_meets_criteria(isa, dtype, mode, start, use_isa, as
         errors = rotation_errors(R[fitted], M[fitted])
         for metric in ("orthonormality", "det"):
             assert errors[metric].max() <= CRITERIA[dtype][metric], f"{isa} {mode} {start}: {metric}"
+
+
+# NaN bit patterns (float32, float64): quiet, negative quiet (x86's default NaN),
+# signalling with a payload, all bits set.
+_NAN_BITS = {
+    torch.float32: (0x7FC00000, -0x00400000, 0x7F800001, -1),
+    torch.float64: (0x7FF8000000000000, -0x0008000000000000, 0x7FF0000000000001, -1),
+}
+
+
+@pytest.mark.parametrize("start", ["cold", "warm"])
+@pytest.mark.parametrize("mode", list(MODES))
+@pytest.mark.parametrize("dtype", DTYPES, ids=dtype_id)
+@pytest.mark.parametrize("isa", SCALAR_ROUNDING_ISA_PARAMS)
+def test_any_nan_at_any_entry(isa, dtype, mode, start, use_isa):
+    """Every NaN bit pattern (either sign, quiet or signalling, any payload) at
+    each of the nine entries of M, beside infinities, signed zeros and
+    subnormal entries: the scalar kernel's results bit for bit. (max_abs_entry
+    takes integer maxima of the entries' bits on some kernels, lanes.h.)"""
+    int_dtype = torch.int32 if dtype == torch.float32 else torch.int64
+    nans = torch.tensor(_NAN_BITS[dtype], dtype=int_dtype).view(dtype)
+    tiny = torch.finfo(dtype).tiny
+    gen = torch.Generator().manual_seed(11)
+    M = torch.randn(9 * len(nans) + 5, 3, 3, dtype=dtype, generator=gen)
+    for i, nan in enumerate(nans):
+        for k in range(9):
+            M[9 * i + k].view(9)[k] = nan
+    M[-5].view(9)[4] = float("inf")
+    M[-4].view(9)[0] = -float("inf")
+    M[-3] = -0.0
+    M[-2] = M[-2] * tiny / 4  # every entry subnormal
+    M[-1].view(9)[8] = -0.0
+    init = random_rotations(M.shape[0], gen).to(dtype) if start == "warm" else None
+    max_iter = MODES[mode]
+    got = _run_info(use_isa, isa, M, init, max_iter, "conservative")
+    ref = _run_info(use_isa, "scalar", M, init, max_iter, "conservative")
+    assert _same(got, ref), f"{isa} vs scalar, {dtype_id(dtype)} {mode} {start}:\n" + _describe(got, ref, M, init)
+    assert (ref[2][: 9 * len(nans) + 2] == 3).all()
