@@ -290,7 +290,7 @@ int64_t one_step_even_range(const BatchArgs<typename L::Scalar>& args, int64_t b
       }
       kernel::LaneState<L> s = kernel::begin_fit<L>(M, &R0, args.options.init_known_clean, nullptr);
       kernel::advance_one_step<L>(s, args.options.variant, nullptr);
-      const Mat3<V> R = kernel::finish<L>(s);
+      const Mat3<V> R = kernel::finish<L, false>(s);  // one step makes no fallback lanes
       for (int k = 0; k < 9; ++k) entries_out.store(R.a[k], out_block, k);
       account_one_step_block<L>(s, args, first, L::width, diagnostics, bad_inits);
     }
@@ -345,7 +345,7 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
         kernel::advance<L, kCold>(s, args.options, first_budget, kCold ? &objective : nullptr);
       }
       // Lanes still running get a provisional result, replaced in a later pass.
-      store_block<L, kPath>(kernel::finish<L>(s), args.out, args.out_layout, first, count);
+      store_block<L, kPath>(kernel::finish<L, !kOneStep>(s), args.out, args.out_layout, first, count);
       if (!kCold && L::any(s.bad_init)) {
         for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
       }
