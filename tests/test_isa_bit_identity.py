@@ -26,7 +26,7 @@ from isa_helpers import (
 )
 
 from torchrot._constants import VARIANTS
-from torchrot.testing import CRITERIA, dtype_id, random_rotations, rotation_errors
+from torchrot.testing import CRITERIA, bits, dtype_id, random_rotations, rotation_errors
 
 # mode id -> max_iter
 MODES = {"converged": None, "iter1": 1, "iter3": 3}
@@ -130,8 +130,7 @@ def test_any_nan_at_any_entry(isa, dtype, mode, start, use_isa):
     each of the nine entries of M, beside infinities, signed zeros and
     subnormal entries: the scalar kernel's results bit for bit. (max_abs_entry
     takes integer maxima of the entries' bits on some kernels, lanes.h.)"""
-    int_dtype = torch.int32 if dtype == torch.float32 else torch.int64
-    nans = torch.tensor(_NAN_BITS[dtype], dtype=int_dtype).view(dtype)
+    nans = torch.tensor(_NAN_BITS[dtype], dtype=bits(torch.zeros((), dtype=dtype)).dtype).view(dtype)
     tiny = torch.finfo(dtype).tiny
     gen = torch.Generator().manual_seed(11)
     M = torch.randn(9 * len(nans) + 5, 3, 3, dtype=dtype, generator=gen)
