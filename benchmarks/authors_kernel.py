@@ -19,17 +19,16 @@ rotations it had for them (``--data arap``, the default: the paper-scale recordi
 ``python -m torchrot bench --full``, ~1e6 matrices, recorded on first use and cached, see
 ``torchrot.bench.data``), or any distribution of ``torchrot.testing.make_warm_start``.
 
-Prints the timings, the accuracy of each computation against the float64 SVD, the
-table of targets: each ratio against the authors' one-step, its limit, whether it holds, and
-what it would be without the warm-start check (what keeping "an error changes nothing"
-costs), and what the guarantees that the timings pay for buy (``GUARANTEES``): inputs made
-from the first ``GUARANTEE_N`` matrices of the data (M at other scales, M = 0 in some
-matrices, warm starts slightly off orthonormal or reflected) through both one-steps, with
-the failures, non-finite results and reflections each gives. The authors' kernels are timed twice: in the caller's floating-point mode, as they
-ship, and with subnormal numbers flushed to zero (``torch.set_flush_denormal(True)`` around
-each call: FTZ and DAZ). Recorded solver data make subnormal numbers inside a step, which
-some x86 cores compute through slow microcode assists (benchmarks/lab_notes.md); torchrot's
-kernels flush subnormal results themselves
+Prints the timings, the accuracy of each computation against the float64 SVD, the table of
+targets: each ratio against the authors' one-step, its limit, whether it holds, and what it
+would be without the warm-start check (what keeping "an error changes nothing" costs), and what
+the guarantees that the timings pay for buy (``authors_guarantees.py``): inputs made from the
+data (M at other scales, M = 0 in some matrices, warm starts slightly off orthonormal or
+reflected) through both one-steps. The authors' kernels are timed twice: in the caller's
+floating-point mode, as they ship, and with subnormal numbers flushed to zero
+(``torch.set_flush_denormal(True)`` around each call: FTZ and DAZ). Recorded solver data make
+subnormal numbers inside a step, which some x86 cores compute through slow microcode assists
+(benchmarks/lab_notes.md); torchrot's kernels flush subnormal results themselves
 (``csrc/cpu/flush_to_zero.h``). The unit of every ratio is the faster of the two, so that no
 core's subnormal arithmetic flatters torchrot.
 
@@ -46,11 +45,12 @@ from __future__ import annotations
 
 import argparse
 import ctypes
-import math
+import functools
 import os
 import subprocess
 import tempfile
 
+import authors_guarantees
 import torch
 
 import torchrot
@@ -60,8 +60,8 @@ from torchrot.bench.machine import Load, load_average, machine_info
 from torchrot.bench.timing import interleaved_median_seconds
 from torchrot.testing import available_cpu_kernels, cpu_kernel, rotation_svd, soa_view, tiled_view
 
-__all__ = ["FLAGS", "GUARANTEES", "GUARANTEE_N", "ONE_STEP", "ITERATED", "KERNEL_MARCH", "TARGETS", "TARGET_LIMITS",
-           "TILE", "authors_unit", "blocks", "build", "compile_library", "load", "main"]
+__all__ = ["FLAGS", "ONE_STEP", "ITERATED", "KERNEL_MARCH", "TARGETS", "TARGET_LIMITS",
+           "TILE", "authors_unit", "blocks", "build", "compile_library", "load", "main", "one_step"]
 
 TILE = 8  # the authors' AVX blocks: 8 float32 matrices
 ONE_STEP = "_Z22fit_rotation_small_avxPfS_i"  # int fit_rotation_small_avx(float* M, float* R, int groups)
@@ -97,26 +97,6 @@ TARGETS = {
     "one-step, contiguous, out=": (OUT, CHECK),
     "converged from the warm start (tiles, out=)": (CONVERGED_TILES, CHECK_TILES),
     "converged from the warm start (contiguous, out=)": (CONVERGED_OUT, CHECK),
-}
-
-#: How many of the data's matrices (the first) the inputs of GUARANTEES are made from.
-GUARANTEE_N = 65_536
-#: What each of torchrot's guarantees, and what its cost in the timing table, buys: an input made
-#: from the recorded data -> (the guarantee it meets, a function (M, init) -> (M', init')). The
-#: answer is the float64 SVD's rotation of M' (of the same rotation at any scale).
-GUARANTEES = {
-    "the recorded data as they are": (
-        "(none)", lambda M, init: (M, init)),
-    "M x 2^-40 (the same data in smaller units)": (
-        "unit scaling (`max_abs_entry`, `unit_scale`)", lambda M, init: (M * 2.0**-40, init)),
-    "M x 2^64": (
-        "unit scaling", lambda M, init: (M * 2.0**64, init)),
-    "M = 0 in every 8th matrix (a vertex whose edges all weigh 0)": (
-        "the masks (`can_take`: no step where H is singular, as for M = 0)", lambda M, init: (_zero_every(M, TILE), init)),
-    "warm starts off orthonormal by 1e-3, R0 (1 + 1e-3)": (
-        "the warm-start check's clean-up (`clean_warm_start`)", lambda M, init: (M, init * (1 + 1e-3))),
-    "warm starts reflected (det -1: a column negated)": (
-        "the warm-start check before writing", lambda M, init: (M, _reflected(init))),
 }
 #: torchrot's CPU kernel -> the limits of TARGETS, in order, as multiples of the authors' one-step built
 #: for the same instruction set (issue #44; AVX2 holds 8 floats per register as their AVX code does, in
@@ -178,16 +158,22 @@ def iterated_fit(kernel, M_blocks: torch.Tensor, init: torch.Tensor) -> torch.Te
     return unblock(R)
 
 
+def one_step(kernels, M: torch.Tensor, init: torch.Tensor) -> torch.Tensor:
+    """The authors' one-step rotations ``(N, 3, 3)`` of M from warm starts
+    ``init`` (N a multiple of TILE), through copies in their layout."""
+    M_blocks, R_blocks = blocks(M), blocks(init)
+    kernels["one-step"](M_blocks.data_ptr(), R_blocks.data_ptr(), M_blocks.shape[0])
+    return unblock(R_blocks)
+
+
 def _accuracy_rows(kernels, M: torch.Tensor, init: torch.Tensor) -> dict[str, dict]:
     """What each computation gives, once, from the same warm starts, against the float64 SVD
     (torchrot on the calling thread's CPU kernel)."""
     M64 = M.double()
     exact = rotation_svd(M64)
-    M_blocks, R_one = blocks(M), blocks(init)
-    kernels["one-step"](M_blocks.data_ptr(), R_one.data_ptr(), M_blocks.shape[0])
     results = {
-        "authors' one-step": unblock(R_one),
-        "authors' iterated": iterated_fit(kernels["iterated"], M_blocks, init),
+        "authors' one-step": one_step(kernels, M, init),
+        "authors' iterated": iterated_fit(kernels["iterated"], blocks(M), init),
         "torchrot one-step": torchrot.fit_rotation(M, init, max_iter=1),
         "torchrot converged from the warm start": torchrot.fit_rotation(M, init),
     }
@@ -199,62 +185,6 @@ def _accuracy_rows(kernels, M: torch.Tensor, init: torch.Tensor) -> dict[str, di
         rows[name] = row
     rows["torchrot converged from the warm start"]["steps"] = \
         torchrot.fit_rotation_info(M, init).iterations.double().mean().item()
-    return rows
-
-
-def _zero_every(M: torch.Tensor, step: int) -> torch.Tensor:
-    """M with every ``step``-th matrix set to 0 (a copy)."""
-    Z = M.clone()
-    Z[::step] = 0
-    return Z
-
-
-def _reflected(R: torch.Tensor) -> torch.Tensor:
-    """R with its last column negated (a copy): det -1 where R is a rotation."""
-    F = R.clone()
-    F[..., 2] = -F[..., 2]
-    return F
-
-
-def _result_row(R: torch.Tensor, M: torch.Tensor) -> dict:
-    """What a one-step gave for M ``(K, 3, 3)``: failures against the float64
-    SVD (accuracy(), over the matrices with M != 0, whose answer is unique),
-    non-finite results, results with det < 0, and the largest orthonormality
-    error of the finite ones."""
-    R64, M64 = R.double(), M.double()
-    finite = torch.isfinite(R64).all(dim=(-2, -1))
-    nonzero = M64.ne(0).any(dim=(-2, -1))
-    orthonormality = (R64[finite].mT @ R64[finite] - torch.eye(3, dtype=torch.float64)).norm(dim=(-2, -1))
-    return {
-        "failures": accuracy(R[nonzero], M64[nonzero], rotation_svd(M64[nonzero]))["failures"],
-        "non_finite": int((~finite).sum()),
-        "reflections": int((torch.linalg.det(R64[finite]) < 0).sum()),
-        "orthonormality": orthonormality.max().item() if orthonormality.numel() else math.nan,
-    }
-
-
-def _guarantee_rows(kernels, M: torch.Tensor, init: torch.Tensor) -> dict[str, dict]:
-    """GUARANTEES, each input through the authors' one-step (as shipped) and
-    torchrot's (``out=`` a copy of its warm starts, on the calling thread's CPU
-    kernel): input -> computation -> _result_row, or {"raised": message} where
-    torchrot raised (then its ``out`` is checked to hold its values bit for
-    bit)."""
-    n = min(GUARANTEE_N, M.shape[0]) // TILE * TILE
-    rows = {}
-    for name, (_, make) in GUARANTEES.items():
-        M_case, init_case = make(M[:n], init[:n])
-        M_blocks, R_blocks = blocks(M_case), blocks(init_case)
-        kernels["one-step"](M_blocks.data_ptr(), R_blocks.data_ptr(), n // TILE)
-        rows[name] = {"authors' one-step": _result_row(unblock(R_blocks), M_case)}
-        out = init_case.clone()
-        try:
-            R = torchrot.fit_rotation(M_case, init_case, max_iter=1, out=out)
-            rows[name]["torchrot one-step"] = _result_row(R, M_case)
-        except ValueError as error:
-            unchanged = torch.equal(out.view(torch.int32), init_case.view(torch.int32))
-            rows[name]["torchrot one-step"] = {
-                "raised": f"raises ValueError ({str(error).split(': ', 1)[-1].split(' (')[0]}); `out` "
-                          f"{'unchanged, bit for bit' if unchanged else 'CHANGED'}"}
     return rows
 
 
@@ -348,23 +278,6 @@ def _print_targets(ns: dict[str, dict[str, float]], accuracy_rows: dict[str, dic
           "tests/test_warm_start_precision.py.")
 
 
-def _print_guarantees(rows: dict[str, dict], kernel: str, n: int) -> None:
-    print(f"\nWhat the guarantees buy: inputs made from the first {n:,} matrices of the data, through the authors' "
-          f"one-step (as shipped, -march={KERNEL_MARCH[kernel]}) and torchrot's (`out=`, kernel {kernel}). Failures: "
-          f"|R - R*|_F > {FAILURE_THRESHOLD:g} against the float64 SVD or not finite, over the matrices with M != 0 "
-          "(for M = 0 every rotation is the answer):\n")
-    print("| input | guarantee | computation | failures | non-finite | det < 0 | max abs(R^T R - I)_F |")
-    print("|---|---|---|---|---|---|---|")
-    for name, computations in rows.items():
-        guarantee = GUARANTEES[name][0]
-        for computation, row in computations.items():
-            if "raised" in row:
-                print(f"| {name} | {guarantee} | {computation} | {row['raised']} | | | |")
-            else:
-                print(f"| {name} | {guarantee} | {computation} | {row['failures']} | {row['non_finite']} "
-                      f"| {row['reflections']} | {row['orthonormality']:.1e} |")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--source", required=True, help="a checkout of ErisZhang/fast-rotation-fitting")
@@ -398,7 +311,7 @@ def main() -> None:
             with cpu_kernel(kernel):
                 accuracy_rows[kernel] = _accuracy_rows(kernels, M, init)
                 if kernel == kernel_names[0]:
-                    guarantee_rows = _guarantee_rows(kernels, M, init)
+                    guarantee_rows = authors_guarantees.rows(functools.partial(one_step, kernels), M, init)
             for row, call in _calls(kernels, M, init).items():
                 calls[(kernel, row)] = _on_kernel(kernel, call)
         before = load_average()
@@ -425,7 +338,8 @@ def main() -> None:
             print(f"| {name} | {kernel} | {row['max_error']:.1e} | {row['median_error']:.1e} | {row['failures']} "
                   f"| {row['orthonormality']:.1e} |")
     _print_targets(ns, accuracy_rows)
-    _print_guarantees(guarantee_rows, kernel_names[0], min(GUARANTEE_N, n) // TILE * TILE)
+    authors_guarantees.print_rows(guarantee_rows, authors_guarantees.size(n), f"-march={KERNEL_MARCH[kernel_names[0]]}",
+                                  kernel_names[0])
 
 
 if __name__ == "__main__":
