@@ -161,21 +161,89 @@ TORCHROT_INLINE void account_one_step_block(const kernel::LaneState<L>& s, const
 }
 
 // The one-step warm update of the block at `first` through
-// kernel::one_step_warm_from_memory (L::stream_one_step), which reads M and
-// init where it uses them: from the tensors themselves on SoA layouts that
-// hold each entry of the block as one vector, else from a copy of the block
-// on the stack (both read before `out`, which may alias them, is written).
-// The result goes through a buffer on the stack (q) to the store, and
-// through finish in blocks where finish has something to do; on evenly
-// spaced layouts, the blocks where it has not write it straight to out
-// (one_step_warm_from_memory's `store`).
-// `even`: M's, init's and out's full blocks (kVectors) where all three are
-// evenly spaced with each entry one vector (all_even, no halves), else null;
-// on the paper authors' tiles at the kernel's width (all three {9, L::width})
-// their entries' offsets are constants.
+// kernel::one_step_warm_from_memory (L::stream_one_step), M, init and out
+// evenly spaced: the block's M, init and out start at M, R0 and out, and
+// entry k at entry_m(k), entry_r(k) and entry_out(k) from there (constants
+// on the paper authors' tiles at the kernel's width, `dense`); `stride`:
+// from one block to the next of each (for the prefetches, which leave out
+// alone where it is init: `prefetch_out`). M and init are read from the
+// tensors themselves (before `out`, which may alias them, is written), the
+// result written straight to out where finish has nothing to do, else
+// through a buffer on the stack (q) and finish.
+template <typename L, typename EntryM, typename EntryR, typename EntryOut>
+TORCHROT_INLINE void one_step_even_block(const BatchArgs<typename L::Scalar>& args, int64_t first,
+                                         const typename L::Scalar* M, const typename L::Scalar* R0,
+                                         typename L::Scalar* out, const int64_t stride[3], EntryM entry_m,
+                                         EntryR entry_r, EntryOut entry_out, bool dense, bool prefetch_out,
+                                         bool diagnostics, int64_t& bad_inits) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  alignas(64) T q[9 * L::width];
+  prefetch_even_block<L, 0>(M, first, stride[0], entry_m, dense);
+  prefetch_even_block<L, 0>(R0, first, stride[1], entry_r, dense);
+  if (prefetch_out) prefetch_even_block<L, 1>(out, first, stride[2], entry_out, dense);
+  kernel::one_step_warm_from_memory<L>([&](int k) TORCHROT_LAMBDA_INLINE { return L::load(M + entry_m(k)); },
+                                       [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(R0 + entry_r(k)); }, q,
+                                       [&](int k, V x) TORCHROT_LAMBDA_INLINE { L::store(x, out + entry_out(k)); },
+                                       args.options.init_known_clean, args.options.variant,
+                                       [&](const kernel::LaneState<L>& s, bool stored) TORCHROT_LAMBDA_INLINE {
+                                         if (!stored) {
+                                           const Mat3<V> R = kernel::finish<L, false>(s);
+                                           for (int k = 0; k < 9; ++k) L::store(R.a[k], out + entry_out(k));
+                                         }
+                                         account_one_step_block<L>(s, args, first, L::width, diagnostics, bad_inits);
+                                       });
+}
+
+// one_step_even_block over the full blocks [begin, end) of M, init and out
+// evenly spaced (`even`: their EvenBlocks, each entry one vector), the
+// layout's case chosen once for the range and the blocks' addresses carried
+// from one block to the next (both done for every block, they cost
+// instructions per matrix: benchmarks/lab_notes.md). Returns how many warm
+// starts were bad.
+template <typename L>
+int64_t one_step_streamed_even_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end,
+                                     const EvenBlocks even[3], bool diagnostics) {
+  using T = typename L::Scalar;
+  int64_t bad_inits = 0;
+  const int64_t stride[3] = {even[0].block * L::width, even[1].block * L::width, even[2].block * L::width};
+  // In place (out is init, block for block), init's prefetches bring out's lines.
+  const bool prefetch_out =
+      !(args.out == args.init && even[2].block == even[1].block && even[2].entry == even[1].entry);
+  const auto run = [&](auto entry_m, auto entry_r, auto entry_out, bool dense) TORCHROT_LAMBDA_INLINE {
+    const T* M = args.M + even[0].block * begin;
+    const T* R0 = args.init + even[1].block * begin;
+    T* out = args.out + even[2].block * begin;
+    for (int64_t first = begin; first < end; first += L::width) {
+      one_step_even_block<L>(args, first, M, R0, out, stride, entry_m, entry_r, entry_out, dense, prefetch_out,
+                             diagnostics, bad_inits);
+      M += stride[0];
+      R0 += stride[1];
+      out += stride[2];
+    }
+  };
+  if (even[0].dense() && even[1].dense() && even[2].dense()) {
+    const auto tile_entry = [](int k) TORCHROT_LAMBDA_INLINE { return int64_t{k} * L::width; };
+    run(tile_entry, tile_entry, tile_entry, true);
+  } else {
+    run([&](int k) TORCHROT_LAMBDA_INLINE { return k * even[0].entry; },
+        [&](int k) TORCHROT_LAMBDA_INLINE { return k * even[1].entry; },
+        [&](int k) TORCHROT_LAMBDA_INLINE { return k * even[2].entry; }, false);
+  }
+  return bad_inits;
+}
+
+// The one-step warm update of the block at `first` through
+// kernel::one_step_warm_from_memory (L::stream_one_step) on the layouts that
+// are not evenly spaced (one_step_even_block's), which it reads where it uses
+// them: from the tensors themselves on SoA layouts that hold each entry of
+// the block as one vector, else from a copy of the block on the stack (both
+// read before `out`, which may alias them, is written). The result goes
+// through a buffer on the stack (q) to the store, and through finish in
+// blocks where finish has something to do.
 template <typename L, BlockPath kPath>
 TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, int64_t first, int count,
-                                    const EvenBlocks* even, bool diagnostics, int64_t& bad_inits) {
+                                    bool diagnostics, int64_t& bad_inits) {
   using T = typename L::Scalar;
   using V = typename L::V;
   alignas(64) T q[9 * L::width];
@@ -183,39 +251,6 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
     account_one_step_block<L>(s, args, first, count, diagnostics, bad_inits);
   };
   const FitOptions& options = args.options;
-  if constexpr (kPath == BlockPath::kVectors) {
-    // entry_m(k), entry_r(k), entry_out(k): the offsets of entry k in M's, init's and out's blocks.
-    const auto run_even = [&](auto entry_m, auto entry_r, auto entry_out, bool dense) TORCHROT_LAMBDA_INLINE {
-      const T* M = args.M + even[0].block * first;
-      const T* R0 = args.init + even[1].block * first;
-      T* out = args.out + even[2].block * first;
-      prefetch_even_block<L, 0>(M, first, even[0].block * L::width, entry_m, dense);
-      prefetch_even_block<L, 0>(R0, first, even[1].block * L::width, entry_r, dense);
-      prefetch_even_block<L, 1>(out, first, even[2].block * L::width, entry_out, dense);
-      kernel::one_step_warm_from_memory<L>([&](int k) TORCHROT_LAMBDA_INLINE { return L::load(M + entry_m(k)); },
-                                           [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(R0 + entry_r(k)); }, q,
-                                           [&](int k, V x) TORCHROT_LAMBDA_INLINE { L::store(x, out + entry_out(k)); },
-                                           options.init_known_clean, options.variant,
-                                           [&](const kernel::LaneState<L>& s, bool stored) TORCHROT_LAMBDA_INLINE {
-                                             if (!stored) {
-                                               const Mat3<V> R = kernel::finish<L, false>(s);
-                                               for (int k = 0; k < 9; ++k) L::store(R.a[k], out + entry_out(k));
-                                             }
-                                             account(s);
-                                           });
-    };
-    if (even != nullptr) {
-      if (even[0].dense() && even[1].dense() && even[2].dense()) {
-        const auto tile_entry = [](int k) TORCHROT_LAMBDA_INLINE { return int64_t{k} * L::width; };
-        run_even(tile_entry, tile_entry, tile_entry, true);
-      } else {
-        run_even([&](int k) TORCHROT_LAMBDA_INLINE { return k * even[0].entry; },
-                 [&](int k) TORCHROT_LAMBDA_INLINE { return k * even[1].entry; },
-                 [&](int k) TORCHROT_LAMBDA_INLINE { return k * even[2].entry; }, false);
-      }
-      return;
-    }
-  }
   // The rows go to q either way; `stored`: as computed (one_step_warm_from_memory's
   // `store`), with nothing for finish to do.
   const auto store_q = [&](int k, V x) TORCHROT_LAMBDA_INLINE { L::store(x, q + k * L::width); };
@@ -303,7 +338,8 @@ int64_t one_step_even_range(const BatchArgs<typename L::Scalar>& args, int64_t b
 // own, so that the block's state stays in registers from the loads to the
 // stores; it timed faster than advance's loop: benchmarks/lab_notes.md), on
 // evenly spaced layouts through one_step_even_range, or, for warm starts with
-// L::stream_one_step (AVX2), through one_step_block.
+// L::stream_one_step (AVX2), through one_step_streamed_even_range there and
+// one_step_block elsewhere.
 template <typename L, BlockPath kPath, bool kOneStep, bool kCold>
 int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end) {
   using T = typename L::Scalar;
@@ -317,9 +353,11 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
                               kCold ? EvenBlocks{} : even_blocks(args.init_layout, L::width),
                               even_blocks(args.out_layout, L::width)};
   const bool evenly_spaced = kPath == BlockPath::kVectors && !kCold && all_even(even);
-  const EvenBlocks* even_vectors = evenly_spaced && even[0].half == 0 ? even : nullptr;  // one_step_block's
   if constexpr (kOneStep && !kCold && !L::stream_one_step && kPath == BlockPath::kVectors && L::width > 1) {
     if (evenly_spaced) return one_step_even_range<L>(args, begin, end, even, diagnostics);
+  }
+  if constexpr (kOneStep && !kCold && L::stream_one_step && kPath == BlockPath::kVectors) {
+    if (evenly_spaced && even[0].half == 0) return one_step_streamed_even_range<L>(args, begin, end, even, diagnostics);
   }
   for (int64_t sub = begin; sub < end; sub += kSubChunk) {
     const int64_t sub_end = std::min(end, sub + kSubChunk);
@@ -328,7 +366,7 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
     for (int64_t first = sub; first < sub_end; first += L::width) {
       const int count = static_cast<int>(std::min<int64_t>(L::width, sub_end - first));
       if constexpr (kOneStep && !kCold && L::stream_one_step) {
-        one_step_block<L, kPath>(args, first, count, even_vectors, diagnostics, bad_inits);
+        one_step_block<L, kPath>(args, first, count, diagnostics, bad_inits);
         continue;
       }
       // Both inputs are in registers before `out` is written: out may alias them.
