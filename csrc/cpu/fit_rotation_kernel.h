@@ -165,23 +165,24 @@ TORCHROT_INLINE void account_one_step_block(const kernel::LaneState<L>& s, const
 // evenly spaced: the block's M, init and out start at M, R0 and out, and
 // entry k at entry_m(k), entry_r(k) and entry_out(k) from there (constants
 // on the paper authors' tiles at the kernel's width, `dense`); `stride`:
-// from one block to the next of each (for the prefetches, which leave out
-// alone where it is init: `prefetch_out`). M and init are read from the
-// tensors themselves (before `out`, which may alias them, is written), the
-// result written straight to out where finish has nothing to do, else
-// through a buffer on the stack (q) and finish.
+// from one block to the next of each (for the prefetches). M and init are
+// read from the tensors themselves (before `out`, which may alias them, is
+// written), the result written straight to out where finish has nothing to
+// do, else through a buffer on the stack (q) and finish.
 template <typename L, typename EntryM, typename EntryR, typename EntryOut>
 TORCHROT_INLINE void one_step_even_block(const BatchArgs<typename L::Scalar>& args, int64_t first,
                                          const typename L::Scalar* M, const typename L::Scalar* R0,
                                          typename L::Scalar* out, const int64_t stride[3], EntryM entry_m,
-                                         EntryR entry_r, EntryOut entry_out, bool dense, bool prefetch_out,
-                                         bool diagnostics, int64_t& bad_inits) {
+                                         EntryR entry_r, EntryOut entry_out, bool dense, bool diagnostics,
+                                         int64_t& bad_inits) {
   using T = typename L::Scalar;
   using V = typename L::V;
   alignas(64) T q[9 * L::width];
   prefetch_even_block<L, 0>(M, first, stride[0], entry_m, dense);
   prefetch_even_block<L, 0>(R0, first, stride[1], entry_r, dense);
-  if (prefetch_out) prefetch_even_block<L, 1>(out, first, stride[2], entry_out, dense);
+  // out's lines too where out is init: without, the tiles in place timed
+  // slower on another machine (benchmarks/lab_notes.md).
+  prefetch_even_block<L, 1>(out, first, stride[2], entry_out, dense);
   kernel::one_step_warm_from_memory<L>([&](int k) TORCHROT_LAMBDA_INLINE { return L::load(M + entry_m(k)); },
                                        [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(R0 + entry_r(k)); }, q,
                                        [&](int k, V x) TORCHROT_LAMBDA_INLINE { L::store(x, out + entry_out(k)); },
@@ -207,16 +208,13 @@ int64_t one_step_streamed_even_range(const BatchArgs<typename L::Scalar>& args, 
   using T = typename L::Scalar;
   int64_t bad_inits = 0;
   const int64_t stride[3] = {even[0].block * L::width, even[1].block * L::width, even[2].block * L::width};
-  // In place (out is init, block for block), init's prefetches bring out's lines.
-  const bool prefetch_out =
-      !(args.out == args.init && even[2].block == even[1].block && even[2].entry == even[1].entry);
   const auto run = [&](auto entry_m, auto entry_r, auto entry_out, bool dense) TORCHROT_LAMBDA_INLINE {
     const T* M = args.M + even[0].block * begin;
     const T* R0 = args.init + even[1].block * begin;
     T* out = args.out + even[2].block * begin;
     for (int64_t first = begin; first < end; first += L::width) {
-      one_step_even_block<L>(args, first, M, R0, out, stride, entry_m, entry_r, entry_out, dense, prefetch_out,
-                             diagnostics, bad_inits);
+      one_step_even_block<L>(args, first, M, R0, out, stride, entry_m, entry_r, entry_out, dense, diagnostics,
+                             bad_inits);
       M += stride[0];
       R0 += stride[1];
       out += stride[2];
