@@ -20,7 +20,7 @@ import torch
 
 import torchrot
 from torchrot.bench.accuracy import FAILURE_THRESHOLD, accuracy
-from torchrot.testing import rotation_svd
+from torchrot.testing import bits, rotation_svd
 
 __all__ = ["GUARANTEES", "GUARANTEE_N", "ZERO_EVERY", "print_rows", "result_row", "rows", "size"]
 
@@ -107,7 +107,7 @@ def rows(authors_one_step: Callable, M: torch.Tensor, init: torch.Tensor) -> dic
             R = torchrot.fit_rotation(M_case, init_case, max_iter=1, out=out)
             found[name]["torchrot one-step"] = result_row(R, M_case)
         except ValueError as error:
-            kept = torch.equal(out.view(torch.int32), init_case.view(torch.int32))
+            kept = torch.equal(bits(out), bits(init_case))
             message = str(error).split(": ", 1)[-1].split(" (")[0]
             found[name]["torchrot one-step"] = {
                 "raised": f"raises ValueError ({message}); `out` {'unchanged, bit for bit' if kept else 'CHANGED'}"
