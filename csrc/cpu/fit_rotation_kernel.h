@@ -162,72 +162,64 @@ TORCHROT_INLINE void account_one_step_block(const kernel::LaneState<L>& s, const
 
 // The one-step warm update of the block at `first` through
 // kernel::one_step_warm_from_memory (L::stream_one_step), M, init and out
-// evenly spaced: the block's M, init and out start at M, R0 and out, and
-// entry k at entry_m(k), entry_r(k) and entry_out(k) from there (constants
-// on the paper authors' tiles at the kernel's width, `dense`); `stride`:
-// from one block to the next of each (for the prefetches). M and init are
-// read from the tensors themselves (before `out`, which may alias them, is
-// written), the result written straight to out where finish has nothing to
-// do, else through a buffer on the stack (q) and finish.
-template <typename L, typename EntryM, typename EntryR, typename EntryOut>
+// evenly spaced: the block's M, init and out start at M, R0 and out, their
+// entries where entries_m, entries_r and entries_out (EvenEntries, through
+// with_even_entries) put them, and `stride` goes from one block to the next
+// of each (for the prefetches). M and init are read from the tensors
+// themselves (before `out`, which may alias them, is written), the result
+// written straight to out where finish has nothing to do, else through a
+// buffer on the stack (q) and finish.
+template <typename L, typename EntriesM, typename EntriesR, typename EntriesOut>
 TORCHROT_INLINE void one_step_even_block(const BatchArgs<typename L::Scalar>& args, int64_t first,
                                          const typename L::Scalar* M, const typename L::Scalar* R0,
-                                         typename L::Scalar* out, const int64_t stride[3], EntryM entry_m,
-                                         EntryR entry_r, EntryOut entry_out, bool dense, bool diagnostics,
+                                         typename L::Scalar* out, const int64_t stride[3], EntriesM entries_m,
+                                         EntriesR entries_r, EntriesOut entries_out, bool dense, bool diagnostics,
                                          int64_t& bad_inits) {
   using T = typename L::Scalar;
   using V = typename L::V;
   alignas(64) T q[9 * L::width];
-  prefetch_even_block<L, 0>(M, first, stride[0], entry_m, dense);
-  prefetch_even_block<L, 0>(R0, first, stride[1], entry_r, dense);
+  prefetch_even_block<L, 0>(M, first, stride[0], entries_m, dense);
+  prefetch_even_block<L, 0>(R0, first, stride[1], entries_r, dense);
   // out's lines too where out is init: without, the tiles in place timed
   // slower on another machine (benchmarks/lab_notes.md).
-  prefetch_even_block<L, 1>(out, first, stride[2], entry_out, dense);
-  kernel::one_step_warm_from_memory<L>([&](int k) TORCHROT_LAMBDA_INLINE { return L::load(M + entry_m(k)); },
-                                       [&](int k) TORCHROT_LAMBDA_INLINE { return L::load(R0 + entry_r(k)); }, q,
-                                       [&](int k, V x) TORCHROT_LAMBDA_INLINE { L::store(x, out + entry_out(k)); },
+  prefetch_even_block<L, 1>(out, first, stride[2], entries_out, dense);
+  kernel::one_step_warm_from_memory<L>([&](int k) TORCHROT_LAMBDA_INLINE { return entries_m.load(M, k); },
+                                       [&](int k) TORCHROT_LAMBDA_INLINE { return entries_r.load(R0, k); }, q,
+                                       [&](int k, V x) TORCHROT_LAMBDA_INLINE { entries_out.store(x, out, k); },
                                        args.options.init_known_clean, args.options.variant,
                                        [&](const kernel::LaneState<L>& s, bool stored) TORCHROT_LAMBDA_INLINE {
                                          if (!stored) {
                                            const Mat3<V> R = kernel::finish<L, false>(s);
-                                           for (int k = 0; k < 9; ++k) L::store(R.a[k], out + entry_out(k));
+                                           for (int k = 0; k < 9; ++k) entries_out.store(R.a[k], out, k);
                                          }
                                          account_one_step_block<L>(s, args, first, L::width, diagnostics, bad_inits);
                                        });
 }
 
 // one_step_even_block over the full blocks [begin, end) of M, init and out
-// evenly spaced (`even`: their EvenBlocks, each entry one vector), the
-// layout's case chosen once for the range and the blocks' addresses carried
-// from one block to the next (both done for every block, they cost
-// instructions per matrix: benchmarks/lab_notes.md). Returns how many warm
-// starts were bad.
+// evenly spaced (all_even: their EvenBlocks), the layout's case chosen once
+// for the range (with_even_entries) and the blocks' addresses carried from
+// one block to the next (both done for every block, they cost instructions
+// per matrix: benchmarks/lab_notes.md). Returns how many warm starts were
+// bad.
 template <typename L>
 int64_t one_step_streamed_even_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end,
                                      const EvenBlocks even[3], bool diagnostics) {
   using T = typename L::Scalar;
   int64_t bad_inits = 0;
   const int64_t stride[3] = {even[0].block * L::width, even[1].block * L::width, even[2].block * L::width};
-  const auto run = [&](auto entry_m, auto entry_r, auto entry_out, bool dense) TORCHROT_LAMBDA_INLINE {
+  with_even_entries<L>(even, [&](auto entries_m, auto entries_r, auto entries_out, bool dense) TORCHROT_LAMBDA_INLINE {
     const T* M = args.M + even[0].block * begin;
     const T* R0 = args.init + even[1].block * begin;
     T* out = args.out + even[2].block * begin;
     for (int64_t first = begin; first < end; first += L::width) {
-      one_step_even_block<L>(args, first, M, R0, out, stride, entry_m, entry_r, entry_out, dense, diagnostics,
+      one_step_even_block<L>(args, first, M, R0, out, stride, entries_m, entries_r, entries_out, dense, diagnostics,
                              bad_inits);
       M += stride[0];
       R0 += stride[1];
       out += stride[2];
     }
-  };
-  if (even[0].dense() && even[1].dense() && even[2].dense()) {
-    const auto tile_entry = [](int k) TORCHROT_LAMBDA_INLINE { return int64_t{k} * L::width; };
-    run(tile_entry, tile_entry, tile_entry, true);
-  } else {
-    run([&](int k) TORCHROT_LAMBDA_INLINE { return k * even[0].entry; },
-        [&](int k) TORCHROT_LAMBDA_INLINE { return k * even[1].entry; },
-        [&](int k) TORCHROT_LAMBDA_INLINE { return k * even[2].entry; }, false);
-  }
+  });
   return bad_inits;
 }
 
@@ -355,7 +347,7 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
     if (evenly_spaced) return one_step_even_range<L>(args, begin, end, even, diagnostics);
   }
   if constexpr (kOneStep && !kCold && L::stream_one_step && kPath == BlockPath::kVectors) {
-    if (evenly_spaced && even[0].half == 0) return one_step_streamed_even_range<L>(args, begin, end, even, diagnostics);
+    if (evenly_spaced) return one_step_streamed_even_range<L>(args, begin, end, even, diagnostics);
   }
   for (int64_t sub = begin; sub < end; sub += kSubChunk) {
     const int64_t sub_end = std::min(end, sub + kSubChunk);
