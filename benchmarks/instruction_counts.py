@@ -60,6 +60,7 @@ def _cases(n: int, authors_library: str | None) -> dict:
     R_u = torchrot.fit_rotation(U)
     M_soa, init_soa, out_soa = soa_view(M), soa_view(init), soa_view(torch.empty_like(M))
     M_tiles, R_tiles = tiled_view(M, 8), tiled_view(init, 8)  # the paper authors' tiles of 8 (authors_kernel.py)
+    out_tiles = tiled_view(torch.empty_like(M), 8)
     out, buf = torch.empty_like(M), torch.empty_like(M)
     fit = torchrot.fit_rotation
     cases = {
@@ -70,6 +71,7 @@ def _cases(n: int, authors_library: str | None) -> dict:
         "warm-start check (out= calls), contiguous": lambda: torch.ops.torchrot_bench.count_bad_warm_starts(init),
         "warm-start check (out= calls), SoA views": lambda: torch.ops.torchrot_bench.count_bad_warm_starts(init_soa),
         "converged from the warm start": lambda: fit(M, init, out=out),
+        "converged from the warm start, tiles of 8": lambda: fit(M_tiles, R_tiles, out=out_tiles),
         "cold uniform, max_iter=1": lambda: fit(U, max_iter=1, out=out),
         "cold uniform, max_iter=2": lambda: fit(U, max_iter=2, out=out),
         "cold uniform, converged": lambda: fit(U, out=out),

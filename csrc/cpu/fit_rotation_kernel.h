@@ -38,6 +38,20 @@ constexpr int64_t kGrainSize = 2048;
 constexpr int64_t kSubChunk = 1024;
 constexpr int64_t kStepsPerPass = 4;
 
+// Blocks whose first pass in converged mode (or with max_iter > 1) fit_range
+// takes together, a Cayley step of each in turn. A block's steps are one chain
+// of dependent operations (S, the estimate's square root, Cramer's rule, a
+// division, the Cayley map, R Q, then the next step's S), and its whole first
+// pass is over a thousand instructions: the next block's chain can start only
+// once the core's out-of-order window reaches it. In turns, four blocks'
+// chains are in the window together. On AVX2 (L::stream_one_step: 16
+// registers, the lane state on the stack) converged fits of warm starts timed
+// faster so; on AVX-512 no faster, so 1 there (benchmarks/lab_notes.md). The
+// results are the same: advance stops after any step and resumes from the
+// lane state alone.
+template <typename L>
+constexpr int kInterleavedBlocks = L::stream_one_step ? 4 : 1;
+
 // A lane still iterating, saved between passes (its normalised A as well:
 // `out` may alias M, whose block has been overwritten by then).
 template <typename T>
@@ -329,7 +343,8 @@ int64_t one_step_even_range(const BatchArgs<typename L::Scalar>& args, int64_t b
 // stores; it timed faster than advance's loop: benchmarks/lab_notes.md), on
 // evenly spaced layouts through one_step_even_range, or, for warm starts with
 // L::stream_one_step (AVX2), through one_step_streamed_even_range there and
-// one_step_block elsewhere.
+// one_step_block elsewhere. Otherwise the first pass takes kInterleavedBlocks
+// blocks at a time.
 template <typename L, BlockPath kPath, bool kOneStep, bool kCold>
 int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end) {
   using T = typename L::Scalar;
@@ -352,27 +367,10 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
   for (int64_t sub = begin; sub < end; sub += kSubChunk) {
     const int64_t sub_end = std::min(end, sub + kSubChunk);
     pending.clear();
-    // First pass: consecutive blocks, straight from and to memory.
-    for (int64_t first = sub; first < sub_end; first += L::width) {
-      const int count = static_cast<int>(std::min<int64_t>(L::width, sub_end - first));
-      if constexpr (kOneStep && !kCold && L::stream_one_step) {
-        one_step_block<L, kPath>(args, first, count, diagnostics, bad_inits);
-        continue;
-      }
-      // Both inputs are in registers before `out` is written: out may alias them.
-      const Mat3<typename L::V> M = load_block<L, kPath>(args.M, args.m_layout, first, count);
-      Mat3<typename L::V> R0;
-      if constexpr (!kCold) R0 = load_block<L, kPath>(args.init, args.init_layout, first, count);
-      // Cold starts' first step takes the maximal objective as its estimate.
-      typename L::V objective;
-      kernel::LaneState<L> s =
-          kernel::begin_fit<L>(M, kCold ? nullptr : &R0, args.options.init_known_clean, kCold ? &objective : nullptr);
-      if constexpr (kOneStep) {
-        kernel::advance_one_step<L>(s, args.options.variant, kCold ? &objective : nullptr);
-      } else {
-        kernel::advance<L, kCold>(s, args.options, first_budget, kCold ? &objective : nullptr);
-      }
-      // Lanes still running get a provisional result, replaced in a later pass.
+    // A block's result after its first pass (lanes still running get a
+    // provisional one, replaced in a later pass), its bad warm starts, its
+    // running lanes saved and its diagnostics.
+    const auto conclude = [&](const kernel::LaneState<L>& s, int64_t first, int count) TORCHROT_LAMBDA_INLINE {
       store_block<L, kPath>(kernel::finish<L, !kOneStep>(s), args.out, args.out_layout, first, count);
       if (!kCold && L::any(s.bad_init)) {
         for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
@@ -385,6 +383,61 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
       if (diagnostics) {
         for (int j = 0; j < count; ++j)
           if (!L::lane_set(s.running, j)) store_diagnostics<L>(s, j, args, first + j);
+      }
+    };
+    const auto block_count = [&](int64_t first) TORCHROT_LAMBDA_INLINE {
+      return static_cast<int>(std::min<int64_t>(L::width, sub_end - first));
+    };
+    // Both inputs are in registers before `out` is written: out may alias
+    // them. Cold starts' first step takes the maximal objective as its
+    // estimate (`objective`).
+    const auto begin_block = [&](int64_t first, typename L::V& objective) TORCHROT_LAMBDA_INLINE {
+      const int count = block_count(first);
+      const Mat3<typename L::V> M = load_block<L, kPath>(args.M, args.m_layout, first, count);
+      Mat3<typename L::V> R0;
+      if constexpr (!kCold) R0 = load_block<L, kPath>(args.init, args.init_layout, first, count);
+      return kernel::begin_fit<L>(M, kCold ? nullptr : &R0, args.options.init_known_clean,
+                                  kCold ? &objective : nullptr);
+    };
+    if constexpr (kOneStep) {
+      // First pass: consecutive blocks, straight from and to memory.
+      for (int64_t first = sub; first < sub_end; first += L::width) {
+        if constexpr (!kCold && L::stream_one_step) {
+          one_step_block<L, kPath>(args, first, block_count(first), diagnostics, bad_inits);
+          continue;
+        }
+        typename L::V objective;
+        kernel::LaneState<L> s = begin_block(first, objective);
+        kernel::advance_one_step<L>(s, args.options.variant, kCold ? &objective : nullptr);
+        conclude(s, first, block_count(first));
+      }
+    } else {
+      // First pass: consecutive blocks, straight from and to memory,
+      // kInterleavedBlocks at a time, a step of each in turn.
+      constexpr int kBlocks = kInterleavedBlocks<L>;
+      for (int64_t group = sub; group < sub_end; group += kBlocks * L::width) {
+        kernel::LaneState<L> states[kBlocks];
+        typename L::V objectives[kBlocks];
+        const int blocks = static_cast<int>(std::min<int64_t>(kBlocks, (sub_end - group + L::width - 1) / L::width));
+        for (int j = 0; j < blocks; ++j) states[j] = begin_block(group + j * L::width, objectives[j]);
+        if constexpr (kBlocks == 1) {
+          kernel::advance<L, kCold>(states[0], args.options, first_budget, kCold ? &objectives[0] : nullptr);
+        } else {
+          for (int64_t step = 0; step < first_budget; ++step) {
+            bool stepped = false;
+            for (int j = 0; j < blocks; ++j) {
+              if (!L::any(states[j].running)) continue;
+              if (kCold && step == 0) {
+                kernel::advance<L, kCold>(states[j], args.options, 1, &objectives[j]);
+              } else {
+                kernel::advance<L>(states[j], args.options, 1);
+              }
+              stepped = true;
+            }
+            if (!stepped) break;
+          }
+        }
+        for (int j = 0; j < blocks; ++j) conclude(states[j], group + j * L::width, block_count(group + j * L::width));
       }
     }
     // Later passes: the unfinished lanes, regrouped into full blocks (none
