@@ -174,77 +174,78 @@ TORCHROT_INLINE void account_one_step_block(const kernel::LaneState<L>& s, const
   }
 }
 
-// The one-step warm update of the block at `first` through
-// kernel::one_step_warm_from_memory (L::stream_one_step), M, init and out
-// evenly spaced: the block's M, init and out start at M, R0 and out, their
-// entries where entries_m, entries_r and entries_out (EvenEntries, through
-// with_even_entries) put them, and `stride` goes from one block to the next
-// of each (for the prefetches). M and init are read from the tensors
-// themselves (before `out`, which may alias them, is written), the result
-// written straight to out where finish has nothing to do, else through a
-// buffer on the stack (q) and finish.
-template <typename L, typename EntriesM, typename EntriesR, typename EntriesOut>
-TORCHROT_INLINE void one_step_even_block(const BatchArgs<typename L::Scalar>& args, int64_t first,
-                                         const typename L::Scalar* M, const typename L::Scalar* R0,
-                                         typename L::Scalar* out, const int64_t stride[3], EntriesM entries_m,
-                                         EntriesR entries_r, EntriesOut entries_out, bool dense, bool diagnostics,
-                                         int64_t& bad_inits) {
+// Calls block(first, M, R0, out, entries_m, entries_r, entries_out) for each
+// full block [first, first + L::width) in [begin, end) of M, init and out
+// evenly spaced (all_even: their EvenBlocks): the block's M, init and out
+// start at M, R0 and out, their entries where the EvenEntries of
+// with_even_entries put them. The layout's case is chosen once for the range
+// and the blocks' addresses carried from one block to the next (both done for
+// every block, they cost instructions per matrix: benchmarks/lab_notes.md),
+// and each block's lines are prefetched kPrefetchBlocks ahead.
+template <typename L, typename Block>
+TORCHROT_INLINE void for_each_even_block(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end,
+                                         const EvenBlocks even[3], Block block) {
   using T = typename L::Scalar;
-  using V = typename L::V;
-  alignas(64) T q[9 * L::width];
-  prefetch_even_block<L, 0>(M, first, stride[0], entries_m, dense);
-  prefetch_even_block<L, 0>(R0, first, stride[1], entries_r, dense);
-  // out's lines too where out is init: without, the tiles in place timed
-  // slower on another machine (benchmarks/lab_notes.md).
-  prefetch_even_block<L, 1>(out, first, stride[2], entries_out, dense);
-  kernel::one_step_warm_from_memory<L>([&](int k) TORCHROT_LAMBDA_INLINE { return entries_m.load(M, k); },
-                                       [&](int k) TORCHROT_LAMBDA_INLINE { return entries_r.load(R0, k); }, q,
-                                       [&](int k, V x) TORCHROT_LAMBDA_INLINE { entries_out.store(x, out, k); },
-                                       args.options.init_known_clean, args.options.variant,
-                                       [&](const kernel::LaneState<L>& s, bool stored) TORCHROT_LAMBDA_INLINE {
-                                         if (!stored) {
-                                           const Mat3<V> R = kernel::finish<L, false>(s);
-                                           for (int k = 0; k < 9; ++k) entries_out.store(R.a[k], out, k);
-                                         }
-                                         account_one_step_block<L>(s, args, first, L::width, diagnostics, bad_inits);
-                                       });
-}
-
-// one_step_even_block over the full blocks [begin, end) of M, init and out
-// evenly spaced (all_even: their EvenBlocks), the layout's case chosen once
-// for the range (with_even_entries) and the blocks' addresses carried from
-// one block to the next (both done for every block, they cost instructions
-// per matrix: benchmarks/lab_notes.md). Returns how many warm starts were
-// bad.
-template <typename L>
-int64_t one_step_streamed_even_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end,
-                                     const EvenBlocks even[3], bool diagnostics) {
-  using T = typename L::Scalar;
-  int64_t bad_inits = 0;
   const int64_t stride[3] = {even[0].block * L::width, even[1].block * L::width, even[2].block * L::width};
   with_even_entries<L>(even, [&](auto entries_m, auto entries_r, auto entries_out, bool dense) TORCHROT_LAMBDA_INLINE {
     const T* M = args.M + even[0].block * begin;
     const T* R0 = args.init + even[1].block * begin;
     T* out = args.out + even[2].block * begin;
     for (int64_t first = begin; first < end; first += L::width) {
-      one_step_even_block<L>(args, first, M, R0, out, stride, entries_m, entries_r, entries_out, dense, diagnostics,
-                             bad_inits);
+      prefetch_even_block<L, 0>(M, first, stride[0], entries_m, dense);
+      prefetch_even_block<L, 0>(R0, first, stride[1], entries_r, dense);
+      // out's lines too where out is init: without, the tiles in place timed
+      // slower on another machine (benchmarks/lab_notes.md).
+      prefetch_even_block<L, 1>(out, first, stride[2], entries_out, dense);
+      block(first, M, R0, out, entries_m, entries_r, entries_out);
       M += stride[0];
       R0 += stride[1];
       out += stride[2];
     }
   });
+}
+
+// The one-step warm update of the full blocks [begin, end) of M, init and out
+// evenly spaced (for_each_even_block) through
+// kernel::one_step_warm_from_memory (L::stream_one_step): M and init read
+// from the tensors themselves (before `out`, which may alias them, is
+// written), the result written straight to out where finish has nothing to
+// do, else through a buffer on the stack (q) and finish. Returns how many
+// warm starts were bad.
+template <typename L>
+int64_t one_step_streamed_even_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end,
+                                     const EvenBlocks even[3], bool diagnostics) {
+  using T = typename L::Scalar;
+  using V = typename L::V;
+  int64_t bad_inits = 0;
+  for_each_even_block<L>(args, begin, end, even,
+                         [&](int64_t first, const T* M, const T* R0, T* out, auto entries_m, auto entries_r,
+                             auto entries_out) TORCHROT_LAMBDA_INLINE {
+                           alignas(64) T q[9 * L::width];
+                           kernel::one_step_warm_from_memory<L>(
+                               [&](int k) TORCHROT_LAMBDA_INLINE { return entries_m.load(M, k); },
+                               [&](int k) TORCHROT_LAMBDA_INLINE { return entries_r.load(R0, k); }, q,
+                               [&](int k, V x) TORCHROT_LAMBDA_INLINE { entries_out.store(x, out, k); },
+                               args.options.init_known_clean, args.options.variant,
+                               [&](const kernel::LaneState<L>& s, bool stored) TORCHROT_LAMBDA_INLINE {
+                                 if (!stored) {
+                                   const Mat3<V> R = kernel::finish<L, false>(s);
+                                   for (int k = 0; k < 9; ++k) entries_out.store(R.a[k], out, k);
+                                 }
+                                 account_one_step_block<L>(s, args, first, L::width, diagnostics, bad_inits);
+                               });
+                         });
   return bad_inits;
 }
 
 // The one-step warm update of the block at `first` through
 // kernel::one_step_warm_from_memory (L::stream_one_step) on the layouts that
-// are not evenly spaced (one_step_even_block's), which it reads where it uses
-// them: from the tensors themselves on SoA layouts that hold each entry of
-// the block as one vector, else from a copy of the block on the stack (both
-// read before `out`, which may alias them, is written). The result goes
-// through a buffer on the stack (q) to the store, and through finish in
-// blocks where finish has something to do.
+// are not evenly spaced (one_step_streamed_even_range's), which it reads
+// where it uses them: from the tensors themselves on SoA layouts that hold
+// each entry of the block as one vector, else from a copy of the block on
+// the stack (both read before `out`, which may alias them, is written). The
+// result goes through a buffer on the stack (q) to the store, and through
+// finish in blocks where finish has something to do.
 template <typename L, BlockPath kPath>
 TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, int64_t first, int count,
                                     bool diagnostics, int64_t& bad_inits) {
@@ -300,40 +301,34 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
 }
 
 // The one-step warm update of the full blocks [begin, end) of M, init and
-// out evenly spaced (all_even), for lanes that hold the block's state in
-// registers from the loads to the stores (not L::stream_one_step): as
-// fit_range's first pass with load_block and store_block, each entry read
+// out evenly spaced (for_each_even_block), for lanes that hold the block's
+// state in registers from the loads to the stores (not L::stream_one_step):
+// as fit_range's first pass with load_block and store_block, each entry read
 // and written at a base pointer and one stride (constant offsets on the
-// paper authors' dense tiles, a block wide or half: with_even_entries), not
-// at offsets computed from the Layout for every block. Returns how many
-// warm starts were bad.
+// paper authors' dense tiles, a block wide or half), not at offsets computed
+// from the Layout for every block. Returns how many warm starts were bad.
 template <typename L>
 int64_t one_step_even_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end,
                             const EvenBlocks even[3], bool diagnostics) {
   using T = typename L::Scalar;
   using V = typename L::V;
   int64_t bad_inits = 0;
-  with_even_entries<L>(even, [&](auto entries_m, auto entries_r, auto entries_out, bool dense) TORCHROT_LAMBDA_INLINE {
-    for (int64_t first = begin; first < end; first += L::width) {
-      const T* M_block = args.M + even[0].block * first;
-      const T* R0_block = args.init + even[1].block * first;
-      T* out_block = args.out + even[2].block * first;
-      prefetch_even_block<L, 0>(M_block, first, even[0].block * L::width, entries_m, dense);
-      prefetch_even_block<L, 0>(R0_block, first, even[1].block * L::width, entries_r, dense);
-      prefetch_even_block<L, 1>(out_block, first, even[2].block * L::width, entries_out, dense);
-      // Both inputs are in registers before `out` is written: out may alias them.
-      Mat3<V> M, R0;
-      for (int k = 0; k < 9; ++k) {
-        M.a[k] = entries_m.load(M_block, k);
-        R0.a[k] = entries_r.load(R0_block, k);
-      }
-      kernel::LaneState<L> s = kernel::begin_fit<L>(M, &R0, args.options.init_known_clean, nullptr);
-      kernel::advance_one_step<L>(s, args.options.variant, nullptr);
-      const Mat3<V> R = kernel::finish<L, false>(s);  // one step makes no fallback lanes
-      for (int k = 0; k < 9; ++k) entries_out.store(R.a[k], out_block, k);
-      account_one_step_block<L>(s, args, first, L::width, diagnostics, bad_inits);
-    }
-  });
+  for_each_even_block<L>(args, begin, end, even,
+                         [&](int64_t first, const T* M_block, const T* R0_block, T* out_block, auto entries_m,
+                             auto entries_r, auto entries_out) TORCHROT_LAMBDA_INLINE {
+                           // Both inputs are in registers before `out` is written: out may alias them.
+                           Mat3<V> M, R0;
+                           for (int k = 0; k < 9; ++k) {
+                             M.a[k] = entries_m.load(M_block, k);
+                             R0.a[k] = entries_r.load(R0_block, k);
+                           }
+                           kernel::LaneState<L> s =
+                               kernel::begin_fit<L>(M, &R0, args.options.init_known_clean, nullptr);
+                           kernel::advance_one_step<L>(s, args.options.variant, nullptr);
+                           const Mat3<V> R = kernel::finish<L, false>(s);  // one step makes no fallback lanes
+                           for (int k = 0; k < 9; ++k) entries_out.store(R.a[k], out_block, k);
+                           account_one_step_block<L>(s, args, first, L::width, diagnostics, bad_inits);
+                         });
   return bad_inits;
 }
 
