@@ -339,7 +339,8 @@ int64_t one_step_even_range(const BatchArgs<typename L::Scalar>& args, int64_t b
 // evenly spaced layouts through one_step_even_range, or, for warm starts with
 // L::stream_one_step (AVX2), through one_step_streamed_even_range there and
 // one_step_block elsewhere. Otherwise the first pass takes kInterleavedBlocks
-// blocks at a time.
+// blocks at a time, warm starts on evenly spaced layouts read and written
+// through with_even_entries.
 template <typename L, BlockPath kPath, bool kOneStep, bool kCold>
 int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end) {
   using T = typename L::Scalar;
@@ -362,78 +363,119 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
   for (int64_t sub = begin; sub < end; sub += kSubChunk) {
     const int64_t sub_end = std::min(end, sub + kSubChunk);
     pending.clear();
-    // A block's result after its first pass (lanes still running get a
-    // provisional one, replaced in a later pass), its bad warm starts, its
-    // running lanes saved and its diagnostics.
-    const auto conclude = [&](const kernel::LaneState<L>& s, int64_t first, int count) TORCHROT_LAMBDA_INLINE {
-      store_block<L, kPath>(kernel::finish<L, !kOneStep>(s), args.out, args.out_layout, first, count);
-      if (!kCold && L::any(s.bad_init)) {
-        for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
-      }
-      if (!kOneStep && L::any(s.running)) {
-        int64_t index[L::width];
-        for (int j = 0; j < L::width; ++j) index[j] = first + j;
-        save_running_lanes<L>(s, count, index, pending);
-      }
-      if (diagnostics) {
-        for (int j = 0; j < count; ++j)
-          if (!L::lane_set(s.running, j)) store_diagnostics<L>(s, j, args, first + j);
-      }
-    };
     const auto block_count = [&](int64_t first) TORCHROT_LAMBDA_INLINE {
       return static_cast<int>(std::min<int64_t>(L::width, sub_end - first));
     };
-    // Both inputs are in registers before `out` is written: out may alias
-    // them. Cold starts' first step takes the maximal objective as its
-    // estimate (`objective`).
-    const auto begin_block = [&](int64_t first, typename L::V& objective) TORCHROT_LAMBDA_INLINE {
-      const int count = block_count(first);
-      const Mat3<typename L::V> M = load_block<L, kPath>(args.M, args.m_layout, first, count);
-      Mat3<typename L::V> R0;
-      if constexpr (!kCold) R0 = load_block<L, kPath>(args.init, args.init_layout, first, count);
-      return kernel::begin_fit<L>(M, kCold ? nullptr : &R0, args.options.init_known_clean,
-                                  kCold ? &objective : nullptr);
-    };
-    if constexpr (kOneStep) {
-      // First pass: consecutive blocks, straight from and to memory.
-      for (int64_t first = sub; first < sub_end; first += L::width) {
-        if constexpr (!kCold && L::stream_one_step) {
-          one_step_block<L, kPath>(args, first, block_count(first), diagnostics, bad_inits);
-          continue;
+    // The first pass over [sub, sub_end), its blocks read by read_block(first,
+    // count, M, R0) (R0 only for warm starts) and their results written by
+    // write_block(R, first, count).
+    const auto first_pass = [&](auto read_block, auto write_block) TORCHROT_LAMBDA_INLINE {
+      // A block's result after its first pass (lanes still running get a
+      // provisional one, replaced in a later pass), its bad warm starts, its
+      // running lanes saved and its diagnostics.
+      const auto conclude = [&](const kernel::LaneState<L>& s, int64_t first, int count) TORCHROT_LAMBDA_INLINE {
+        write_block(kernel::finish<L, !kOneStep>(s), first, count);
+        if (!kCold && L::any(s.bad_init)) {
+          for (int j = 0; j < count; ++j) bad_inits += L::lane_set(s.bad_init, j);
         }
-        typename L::V objective;
-        kernel::LaneState<L> s = begin_block(first, objective);
-        kernel::advance_one_step<L>(s, args.options.variant, kCold ? &objective : nullptr);
-        conclude(s, first, block_count(first));
+        if (!kOneStep && L::any(s.running)) {
+          int64_t index[L::width];
+          for (int j = 0; j < L::width; ++j) index[j] = first + j;
+          save_running_lanes<L>(s, count, index, pending);
+        }
+        if (diagnostics) {
+          for (int j = 0; j < count; ++j)
+            if (!L::lane_set(s.running, j)) store_diagnostics<L>(s, j, args, first + j);
+        }
+      };
+      // Both inputs are in registers before `out` is written: out may alias
+      // them. Cold starts' first step takes the maximal objective as its
+      // estimate (`objective`).
+      const auto begin_block = [&](int64_t first, typename L::V& objective) TORCHROT_LAMBDA_INLINE {
+        Mat3<typename L::V> M, R0;
+        read_block(first, block_count(first), M, R0);
+        return kernel::begin_fit<L>(M, kCold ? nullptr : &R0, args.options.init_known_clean,
+                                    kCold ? &objective : nullptr);
+      };
+      if constexpr (kOneStep) {
+        // Consecutive blocks, straight from and to memory.
+        for (int64_t first = sub; first < sub_end; first += L::width) {
+          if constexpr (!kCold && L::stream_one_step) {
+            one_step_block<L, kPath>(args, first, block_count(first), diagnostics, bad_inits);
+            continue;
+          }
+          typename L::V objective;
+          kernel::LaneState<L> s = begin_block(first, objective);
+          kernel::advance_one_step<L>(s, args.options.variant, kCold ? &objective : nullptr);
+          conclude(s, first, block_count(first));
+        }
+      } else {
+        // Consecutive blocks, straight from and to memory, kInterleavedBlocks
+        // at a time, a step of each in turn.
+        constexpr int kBlocks = kInterleavedBlocks<L>;
+        for (int64_t group = sub; group < sub_end; group += kBlocks * L::width) {
+          kernel::LaneState<L> states[kBlocks];
+          typename L::V objectives[kBlocks];
+          const int blocks = static_cast<int>(std::min<int64_t>(kBlocks, (sub_end - group + L::width - 1) / L::width));
+          for (int j = 0; j < blocks; ++j) states[j] = begin_block(group + j * L::width, objectives[j]);
+          if constexpr (kBlocks == 1) {
+            kernel::advance<L, kCold>(states[0], args.options, first_budget, kCold ? &objectives[0] : nullptr);
+          } else {
+            for (int64_t step = 0; step < first_budget; ++step) {
+              bool stepped = false;
+              for (int j = 0; j < blocks; ++j) {
+                if (!L::any(states[j].running)) continue;
+                if (kCold && step == 0) {
+                  kernel::advance<L, kCold>(states[j], args.options, 1, &objectives[j]);
+                } else {
+                  kernel::advance<L>(states[j], args.options, 1);
+                }
+                stepped = true;
+              }
+              if (!stepped) break;
+            }
+          }
+          for (int j = 0; j < blocks; ++j) conclude(states[j], group + j * L::width, block_count(group + j * L::width));
+        }
+      }
+    };
+    // Evenly spaced warm layouts (the paper authors' tiles, SoA views): each
+    // entry at a base pointer and one stride (with_even_entries), as the
+    // one-step reads them, not at offsets computed from the Layouts for every
+    // block (load_block and store_block: more instructions per matrix on the
+    // tiles, benchmarks/lab_notes.md). The one-step has loops of its own.
+    constexpr bool kEvenFirstPass = !kOneStep && !kCold && kPath == BlockPath::kVectors && L::width > 1;
+    if (kEvenFirstPass && evenly_spaced) {
+      if constexpr (kEvenFirstPass) {
+        with_even_entries<L>(
+            even, [&](auto entries_m, auto entries_r, auto entries_out, bool dense) TORCHROT_LAMBDA_INLINE {
+              const int64_t stride[3] = {even[0].block * L::width, even[1].block * L::width, even[2].block * L::width};
+              first_pass(
+                  [&](int64_t first, int, Mat3<typename L::V>& M, Mat3<typename L::V>& R0) TORCHROT_LAMBDA_INLINE {
+                    const T* M_block = args.M + even[0].block * first;
+                    const T* R0_block = args.init + even[1].block * first;
+                    prefetch_even_block<L, 0>(M_block, first, stride[0], entries_m, dense);
+                    prefetch_even_block<L, 0>(R0_block, first, stride[1], entries_r, dense);
+                    for (int k = 0; k < 9; ++k) {
+                      M.a[k] = entries_m.load(M_block, k);
+                      R0.a[k] = entries_r.load(R0_block, k);
+                    }
+                  },
+                  [&](const Mat3<typename L::V>& R, int64_t first, int) TORCHROT_LAMBDA_INLINE {
+                    T* out_block = args.out + even[2].block * first;
+                    prefetch_even_block<L, 1>(out_block, first, stride[2], entries_out, dense);
+                    for (int k = 0; k < 9; ++k) entries_out.store(R.a[k], out_block, k);
+                  });
+            });
       }
     } else {
-      // First pass: consecutive blocks, straight from and to memory,
-      // kInterleavedBlocks at a time, a step of each in turn.
-      constexpr int kBlocks = kInterleavedBlocks<L>;
-      for (int64_t group = sub; group < sub_end; group += kBlocks * L::width) {
-        kernel::LaneState<L> states[kBlocks];
-        typename L::V objectives[kBlocks];
-        const int blocks = static_cast<int>(std::min<int64_t>(kBlocks, (sub_end - group + L::width - 1) / L::width));
-        for (int j = 0; j < blocks; ++j) states[j] = begin_block(group + j * L::width, objectives[j]);
-        if constexpr (kBlocks == 1) {
-          kernel::advance<L, kCold>(states[0], args.options, first_budget, kCold ? &objectives[0] : nullptr);
-        } else {
-          for (int64_t step = 0; step < first_budget; ++step) {
-            bool stepped = false;
-            for (int j = 0; j < blocks; ++j) {
-              if (!L::any(states[j].running)) continue;
-              if (kCold && step == 0) {
-                kernel::advance<L, kCold>(states[j], args.options, 1, &objectives[j]);
-              } else {
-                kernel::advance<L>(states[j], args.options, 1);
-              }
-              stepped = true;
-            }
-            if (!stepped) break;
-          }
-        }
-        for (int j = 0; j < blocks; ++j) conclude(states[j], group + j * L::width, block_count(group + j * L::width));
-      }
+      first_pass(
+          [&](int64_t first, int count, Mat3<typename L::V>& M, Mat3<typename L::V>& R0) TORCHROT_LAMBDA_INLINE {
+            M = load_block<L, kPath>(args.M, args.m_layout, first, count);
+            if constexpr (!kCold) R0 = load_block<L, kPath>(args.init, args.init_layout, first, count);
+          },
+          [&](const Mat3<typename L::V>& R, int64_t first, int count)
+              TORCHROT_LAMBDA_INLINE { store_block<L, kPath>(R, args.out, args.out_layout, first, count); });
     }
     // Later passes: the unfinished lanes, regrouped into full blocks (none
     // after one step: advance_one_step leaves no lane running).
