@@ -15,7 +15,10 @@ below the kernel's entry (``fit_range``, ``count_bad_warm_starts``...;
 ``--root`` names another): all instructions, ``vmov*`` (vector moves), and
 instructions with a stack operand (addressed off ``%rsp`` or ``%rbp``: spills,
 reloads and buffers on the stack). Work outside those libraries (Python,
-torch's dispatch) is one row, which should be near zero per matrix.
+torch's dispatch) is one row, which should be near zero per matrix. A first
+table gives every case by part of the fit instead (PARTS: the warm-start
+check, moving the matrices, the maximum check, the guarantees in the step,
+the Cayley step, the lane state, the authors' kernels), side by side.
 
 Why: the speed targets against the authors' AVX kernel (authors_kernel.py)
 are reached or not by instructions and spills per matrix; this says which
@@ -39,8 +42,33 @@ ENTRY_POINTS = ("fit_range", "count_bad_warm_starts", "rotation_gradient_range",
                 "fit_rotation_avx")
 OUTSIDE = "(outside the library: Python, torch)"
 LAMBDA = "{lambda}"
+# The parts of a fit that an instruction can belong to, each by the functions
+# that make it up: an instruction belongs to the first part one of whose
+# functions its chain of inlined functions holds (so a load inside the step
+# is moving, a mask inside begin_fit a check), else to LOOP_PART.
+PARTS = (
+    ("the warm-start check before writing", ("count_bad_warm_starts",)),
+    ("moving the matrices in and out", (
+        "load", "loadu", "store", "storeu", "load_halves", "store_halves", "load_block", "store_block", "load_soa",
+        "store_soa", "gather_block", "scatter_block", "load_tiled_runs", "store_tiled_runs", "prefetch_even_block",
+        "prefetch_contiguous_block", "prefetch_tiles", "_mm256_load_ps", "_mm256_store_ps")),
+    ("the maximum check (converged fits)", ("is_maximum", "saddle_escape_rotation")),
+    ("scaling, the checks and the masks in the step", (
+        "max_abs_entry", "unit_scale", "outside_normal_range", "check_warm_start", "clean_warm_start",
+        "needs_cleaning", "can_take", "count_step", "finish")),
+    ("the Cayley step (S = R^T A, the estimate, the step, R Q)", (
+        "transpose_times", "transpose_times_by_rows", "trace", "objective_estimate", "cayley_step",
+        "cayley_increment", "rotate_by", "rotate_row_by", "take_step")),
+    ("the lane state and the convergence decisions", ("advance", "begin_fit", "LaneState", "save_running_lanes",
+                                                      "restore_block")),
+    # Their kernels are one function each (intrinsics inlined, loads and
+    # stores by pointer), not parted as torchrot's.
+    ("the paper authors' kernel: all of it (loads, step, stores; iterated: its test)",
+     ("fit_rotation_small_avx", "fit_rotation_avx")),
+)
+LOOP_PART = "the loops over blocks, and the rest"
 
-__all__ = ["ENTRY_POINTS", "main", "profile", "short_name"]
+__all__ = ["ENTRY_POINTS", "LOOP_PART", "PARTS", "main", "profile", "short_name"]
 
 
 def short_name(function: str) -> str:
@@ -153,9 +181,16 @@ def _charge(chain: list[str], depth: int, root: str | None, lines: bool) -> str:
     return " > ".join(prefix + below) if below else chain[at] + " (itself)"
 
 
+def _part(chain: list[str]) -> str:
+    """The part of PARTS that an address's chain of functions belongs to."""
+    names = {name.split("::")[0] for name in chain[:-1]}  # an out-of-line lambda by its function's name
+    return next((part for part, functions in PARTS if names.intersection(functions)), LOOP_PART)
+
+
 def profile(trace_prefix: str, library: str, sizes: tuple[int, int], depth: int, root: str | None,
-            lines: bool = False):
-    """{row: [instructions, vmov, stack operands] per matrix}, from regions 0 and 1 of a trace."""
+            lines: bool = False) -> tuple[dict, dict]:
+    """{row: [instructions, vmov, stack operands] per matrix}, from regions 0 and 1 of a trace:
+    by function (rows: see _charge), and by part of the fit (PARTS)."""
     histograms, outside = [], []
     for region in (0, 1):
         pcs = np.fromfile(f"{trace_prefix}.{region}.pcs", dtype=np.uint64)
@@ -170,20 +205,23 @@ def profile(trace_prefix: str, library: str, sizes: tuple[int, int], depth: int,
     chains, instructions = _inline_chains(library, hot), _instructions(library, hot)
     per_matrix = 1.0 / (sizes[1] - sizes[0])
     rows = collections.defaultdict(lambda: [0.0, 0.0, 0.0])
+    part_rows = collections.defaultdict(lambda: [0.0, 0.0, 0.0])
     for address in hot:
         executed = (histograms[1].get(address, 0) - histograms[0].get(address, 0)) * per_matrix
         text = instructions.get(address, "")
-        row = rows[_charge(chains.get(address, []), depth, root, lines)]
-        row[0] += executed
-        row[1] += executed * text.startswith("vmov")
-        row[2] += executed * bool(re.search(r"\(%r[sb]p", text))
-    rows[OUTSIDE][0] += (outside[1] - outside[0]) * per_matrix
-    return dict(rows)
+        chain = chains.get(address, [])
+        counts = (executed, executed * text.startswith("vmov"), executed * bool(re.search(r"\(%r[sb]p", text)))
+        for row in (rows[_charge(chain, depth, root, lines)], part_rows[_part(chain)]):
+            for k in range(3):
+                row[k] += counts[k]
+    for grouping in (rows, part_rows):
+        grouping[OUTSIDE][0] += (outside[1] - outside[0]) * per_matrix
+    return dict(rows), dict(part_rows)
 
 
-def _traced_rows(case: str, args, counter: str, libraries: dict, prefix: str) -> tuple[dict, str]:
-    """profile's rows of one case, in torchrot's library or, for the authors' cases,
-    theirs, and the kernel it ran on."""
+def _traced_rows(case: str, args, counter: str, libraries: dict, prefix: str) -> tuple[dict, dict, str]:
+    """profile's rows of one case (by function, by part), in torchrot's library or,
+    for the authors' cases, theirs, and the kernel it ran on."""
     library = libraries["authors" if case.startswith(instruction_counts.AUTHORS_PREFIX) else "torchrot"]
     worker = [counter, sys.executable, instruction_counts.__file__, "--worker", "--kernels", args.kernel,
               "--sizes", *map(str, args.sizes), "--repeats", "1", "--only", case]
@@ -195,7 +233,7 @@ def _traced_rows(case: str, args, counter: str, libraries: dict, prefix: str) ->
         sys.exit(f"the traced worker failed (is {case!r} a case of instruction_counts.py?):\n{run.stderr}")
     ran = [line[len(instruction_counts.KERNEL_PREFIX):] for line in run.stderr.splitlines()
            if line.startswith(instruction_counts.KERNEL_PREFIX)]
-    return profile(prefix, library, tuple(args.sizes), args.depth, args.root, args.lines), ran[0]
+    return (*profile(prefix, library, tuple(args.sizes), args.depth, args.root, args.lines), ran[0])
 
 
 def main() -> None:
@@ -242,15 +280,41 @@ def main() -> None:
           f"{f'; the authors kernels built with -march={args.march}' if args.authors else ''}; rows: the functions "
           f"{args.depth} level(s) below {f'{args.root} (where it runs, else below ' if args.root else '('}"
           "the kernel's entry point).")
-    for case, (rows, ran) in tables.items():
-        whose = "the authors' kernel" if case.startswith(instruction_counts.AUTHORS_PREFIX) else f"kernel {ran}"
-        print(f"\n{case} ({whose}):\n")
+    _print_parts(tables)
+    for case, (rows, _, ran) in tables.items():
+        print(f"\n{case} ({_whose(case, ran)}):\n")
         print("| function | instructions | vmov* | stack operands |\n|---|---|---|---|")
         for name, row in sorted(rows.items(), key=lambda item: -item[1][0]):
             if abs(row[0]) >= 0.05:
                 print(f"| {name} | {row[0]:.1f} | {row[1]:.1f} | {row[2]:.1f} |")
-        total = [sum(row[k] for row in rows.values()) for k in range(3)]
+        total = _total(rows)
         print(f"| (every instruction) | {total[0]:.1f} | {total[1]:.1f} | {total[2]:.1f} |")
+
+
+def _whose(case: str, ran: str) -> str:
+    return "the authors' kernel" if case.startswith(instruction_counts.AUTHORS_PREFIX) else f"kernel {ran}"
+
+
+def _total(rows: dict) -> list[float]:
+    return [sum(row[k] for row in rows.values()) for k in range(3)]
+
+
+def _print_parts(tables: dict) -> None:
+    """One table of every case by part of the fit (PARTS): instructions per
+    matrix, and in brackets those with a stack operand."""
+    cases = list(tables)
+    print("\nBy part of the fit (PARTS in instruction_profile.py: an instruction belongs to the first part that one "
+          "of the functions it was inlined from makes up), instructions per matrix (of which stack operands):\n")
+    print("| part | " + " | ".join(f"{case} ({_whose(case, tables[case][2])})" for case in cases) + " |")
+    print("|---" * (len(cases) + 1) + "|")
+    for part in [name for name, _ in PARTS] + [LOOP_PART, OUTSIDE]:
+        cells = []
+        for case in cases:
+            row = tables[case][1].get(part, [0.0, 0.0, 0.0])
+            cells.append(f"{row[0]:.1f}" + ("" if part == OUTSIDE else f" ({row[2]:.1f})"))
+        print(f"| {part} | " + " | ".join(cells) + " |")
+    totals = [_total(tables[case][1]) for case in cases]
+    print("| (every instruction) | " + " | ".join(f"{t[0]:.1f} ({t[2]:.1f})" for t in totals) + " |")
 
 
 if __name__ == "__main__":

@@ -232,3 +232,32 @@ def test_benchmark_modules_are_short_declare_all_and_skip_the_package_root(path)
                 assert all(a.name != "torchrot" for a in node.names), "imports the package root"
             elif isinstance(node, ast.ImportFrom) and node.module == "torchrot":
                 assert all(a.name in {"bench"} for a in node.names), "imports from the package root"
+
+
+def test_instruction_profile_charges_each_instruction_to_one_part_of_the_fit(monkeypatch):
+    """benchmarks/instruction_profile.py's table by part: an instruction goes to
+    the first part of PARTS that one of the functions it was inlined from makes
+    up (a load inside the step is moving, a mask inside begin_fit a check), an
+    out-of-line lambda by its function's name, the rest to the loop."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import instruction_profile as ip
+
+    parts = {name: name for name, _ in ip.PARTS}
+    step = next(p for p in parts if p.startswith("the Cayley step"))
+    moving = next(p for p in parts if p.startswith("moving"))
+    checks = next(p for p in parts if p.startswith("scaling"))
+    warm_check = next(p for p in parts if p.startswith("the warm-start check"))
+    lambda_ = ip.LAMBDA
+    cases = {
+        ("fit_range", "advance", "take_step", "rotate_by", "mat3.h:10"): step,
+        ("fit_range", "one_step_warm_from_memory", "transpose_times_by_rows", lambda_, "load",
+         "avxintrin.h:1"): moving,
+        ("fit_range", "begin_fit", "check_warm_start", "mask_and", "lanes.h:1"): checks,
+        ("count_bad_warm_starts::{lambda}", "check_warm_start", "gram", "mat3.h:1"): warm_check,
+        ("fit_range", lambda_, "any", "lanes.h:1"): ip.LOOP_PART,
+        ("fit_rotation_small_avx", "_mm256_add_ps", "avxintrin.h:1"): next(p for p in parts if "authors" in p),
+        (): ip.LOOP_PART,
+    }
+    for chain, part in cases.items():
+        assert ip._part(list(chain)) == part, chain
+    assert len(set(parts)) == len(ip.PARTS) and ip.LOOP_PART not in parts
