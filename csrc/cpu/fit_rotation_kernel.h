@@ -303,10 +303,11 @@ TORCHROT_INLINE void one_step_block(const BatchArgs<typename L::Scalar>& args, i
 // The one-step warm update of the full blocks [begin, end) of M, init and
 // out evenly spaced (for_each_even_block), for lanes that hold the block's
 // state in registers from the loads to the stores (not L::stream_one_step):
-// as fit_range's first pass with load_block and store_block, each entry read
-// and written at a base pointer and one stride (constant offsets on the
-// paper authors' dense tiles, a block wide or half), not at offsets computed
-// from the Layout for every block. Returns how many warm starts were bad.
+// the loads, begin_fit, advance_one_step, finish and the stores of
+// fit_range's one-step pass, in a loop of their own with each entry read and
+// written at a base pointer and one stride (constant offsets on the paper
+// authors' dense tiles, a block wide or half), not at offsets computed from
+// the Layout for every block. Returns how many warm starts were bad.
 template <typename L>
 int64_t one_step_even_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int64_t end,
                             const EvenBlocks even[3], bool diagnostics) {
