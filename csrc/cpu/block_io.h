@@ -75,18 +75,18 @@ inline bool is_soa_batch(const Layout& layout) { return layout.stride[0] == 1; }
 constexpr int64_t kPrefetchBlocks = 4;
 
 // How far ahead the contiguous paths prefetch, in bytes rather than blocks:
-// kPrefetchBlocks of AVX-512's float32 blocks, so that the blocks of fewer or
-// narrower lanes (AVX2's 8 floats: 288 bytes) look as far ahead. A block
-// dense in memory is read quicker than the nine entry streams of the SoA
-// paths, and AVX2's tiles and contiguous batches timed faster so
-// (benchmarks/lab_notes.md).
-constexpr int64_t kPrefetchContiguousBytes = kPrefetchBlocks * 9 * 16 * 4;
+// kPrefetchBlocks blocks of the widest vectors (64 bytes an entry: AVX-512),
+// so that the blocks of fewer or narrower lanes (AVX2's 8 floats: 288 bytes)
+// look as far ahead. A block dense in memory is read quicker than the nine
+// entry streams of the SoA paths, and AVX2's tiles and contiguous batches
+// timed faster so (benchmarks/lab_notes.md).
+constexpr int64_t kPrefetchContiguousBytes = kPrefetchBlocks * 9 * 64;
 
 template <typename L, int kWrite>
 TORCHROT_INLINE void prefetch_contiguous_block(const typename L::Scalar* block) {
   constexpr int kBytes = 9 * L::width * sizeof(typename L::Scalar);
-  constexpr int64_t kAhead = std::max<int64_t>(kPrefetchContiguousBytes, kPrefetchBlocks * kBytes);
-  const char* ahead = reinterpret_cast<const char*>(block) + kAhead;
+  static_assert(kBytes <= 9 * 64, "a block wider than AVX-512's: kPrefetchContiguousBytes would be under a block");
+  const char* ahead = reinterpret_cast<const char*>(block) + kPrefetchContiguousBytes;
   for (int line = 0; line < kBytes; line += 64) __builtin_prefetch(ahead + line, kWrite);
 }
 

@@ -174,6 +174,20 @@ TORCHROT_INLINE void account_one_step_block(const kernel::LaneState<L>& s, const
   }
 }
 
+// Prefetches kPrefetchBlocks ahead the lines of the evenly spaced block at
+// `first` of M, init and out (prefetch_even_block), which start at M, R0 and
+// out and are stride[0], stride[1] and stride[2] from their next blocks.
+template <typename L, typename EntriesM, typename EntriesR, typename EntriesOut>
+TORCHROT_INLINE void prefetch_even_blocks(int64_t first, const typename L::Scalar* M, const typename L::Scalar* R0,
+                                          const typename L::Scalar* out, const int64_t stride[3], EntriesM entries_m,
+                                          EntriesR entries_r, EntriesOut entries_out, bool dense) {
+  prefetch_even_block<L, 0>(M, first, stride[0], entries_m, dense);
+  prefetch_even_block<L, 0>(R0, first, stride[1], entries_r, dense);
+  // out's lines too where out is init: without, the tiles in place timed
+  // slower on another machine (benchmarks/lab_notes.md).
+  prefetch_even_block<L, 1>(out, first, stride[2], entries_out, dense);
+}
+
 // Calls block(first, M, R0, out, entries_m, entries_r, entries_out) for each
 // full block [first, first + L::width) in [begin, end) of M, init and out
 // evenly spaced (all_even: their EvenBlocks): the block's M, init and out
@@ -192,11 +206,7 @@ TORCHROT_INLINE void for_each_even_block(const BatchArgs<typename L::Scalar>& ar
     const T* R0 = args.init + even[1].block * begin;
     T* out = args.out + even[2].block * begin;
     for (int64_t first = begin; first < end; first += L::width) {
-      prefetch_even_block<L, 0>(M, first, stride[0], entries_m, dense);
-      prefetch_even_block<L, 0>(R0, first, stride[1], entries_r, dense);
-      // out's lines too where out is init: without, the tiles in place timed
-      // slower on another machine (benchmarks/lab_notes.md).
-      prefetch_even_block<L, 1>(out, first, stride[2], entries_out, dense);
+      prefetch_even_blocks<L>(first, M, R0, out, stride, entries_m, entries_r, entries_out, dense);
       block(first, M, R0, out, entries_m, entries_r, entries_out);
       M += stride[0];
       R0 += stride[1];
@@ -455,8 +465,8 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
                   [&](int64_t first, int, Mat3<typename L::V>& M, Mat3<typename L::V>& R0) TORCHROT_LAMBDA_INLINE {
                     const T* M_block = args.M + even[0].block * first;
                     const T* R0_block = args.init + even[1].block * first;
-                    prefetch_even_block<L, 0>(M_block, first, stride[0], entries_m, dense);
-                    prefetch_even_block<L, 0>(R0_block, first, stride[1], entries_r, dense);
+                    prefetch_even_blocks<L>(first, M_block, R0_block, args.out + even[2].block * first, stride,
+                                            entries_m, entries_r, entries_out, dense);
                     for (int k = 0; k < 9; ++k) {
                       M.a[k] = entries_m.load(M_block, k);
                       R0.a[k] = entries_r.load(R0_block, k);
@@ -464,7 +474,6 @@ int64_t fit_range(const BatchArgs<typename L::Scalar>& args, int64_t begin, int6
                   },
                   [&](const Mat3<typename L::V>& R, int64_t first, int) TORCHROT_LAMBDA_INLINE {
                     T* out_block = args.out + even[2].block * first;
-                    prefetch_even_block<L, 1>(out_block, first, stride[2], entries_out, dense);
                     for (int k = 0; k < 9; ++k) entries_out.store(R.a[k], out_block, k);
                   });
             });
