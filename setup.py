@@ -119,7 +119,7 @@ BASELINE_KERNELS = [  # (source, flags): every target
 # The AVX2 object: GCC schedules x86 code only after register allocation by
 # default; -fschedule-insns schedules it before as well, and -fsched-pressure
 # keeps that schedule within the 16 vector registers. A fit's block is a long
-# chain of dependent vector operations, and so ordered the AVX2 fits ran 4-11%
+# chain of dependent vector operations, and so ordered the AVX2 fits ran
 # faster (converged, cold, float64, the one-step); the AVX-512 ones (32
 # registers) no faster (benchmarks/lab_notes.md).
 GCC_FLAGS = {"csrc/cpu/kernel_default.cpp": ["--param=large-function-growth=100000", "-Wno-psabi"],
